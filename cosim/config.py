@@ -1,0 +1,376 @@
+"""Typed experiment config: frozen dataclasses loaded from YAML, validated once at load.
+
+Contract: `load_config(path_or_dict, overrides)` returns a `Config` or raises `ConfigError` naming the bad
+key. Unknown keys are errors; dotted overrides (`{"reward.phi": 0.785}` or `["reward.phi=0.785"]`) are
+applied before validation. Relative paths in `net` are resolved against the YAML file's folder.
+Units are given in each field's comment.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from cosim.errors import ConfigError
+
+# A stacked VelocityMap of the paper's size vs one that trains on a CPU; user keys override a preset.
+OBSERVATION_PRESETS: dict[str, dict[str, Any]] = {
+    "default": {"frames": 5, "height_px": 32, "width_px": 128, "length_m": 128.0, "width_m": 32.0},
+    "paper": {"frames": 10, "height_px": 64, "width_px": 512, "length_m": 256.0, "width_m": 32.0},
+}
+CHANNELS = ("road", "avs", "hvs", "ego_merger")
+# Named terms of a vehicle's individual utility and their default weights (see cosim.reward).
+REWARD_TERMS: dict[str, float] = {
+    "speed": 1.0,  # progress this decision period / (max speed * period), in [0, 1]
+    "lane_change": 0.05,  # an AV lane change (cost)
+    "invalid_action": 0.1,  # an AV lane change toward no lane (cost)
+    "accel": 0.05,  # |speed change| / (max accel * period) (cost, AVs only)
+    "collision": 5.0,  # the vehicle crashed this period (cost)
+    "merge": 2.0,  # the merging vehicle reached a through lane this period (bonus)
+}
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    file: str = "../sumo_net/merge/merge.net.xml"  # the SUMO .net.xml (relative to the config file)
+    # Net description YAML; None: `<net stem>.yaml` beside the net, else inferred from the net.
+    description: str | None = None
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    step_length: float = 0.1  # [s] SUMO step; 0.1 s so side collisions are not stepped over
+    decision_period: float = 1.0  # [s] between two agent decisions
+    horizon: float = 20.0  # [s] episode time limit (truncation)
+    seed: int = 0  # seed of the first episode; each reset without a seed takes the next one
+    collision_mingap_factor: float = 0.0  # 0: only physical overlap is a collision
+    remove_crashed: bool = True  # take crashed vehicles off the road after the decision step
+    stuck_speed: float = 0.5  # [m/s] a merging vehicle slower than this near its lane end has failed
+    stuck_distance: float = 10.0  # [m] ... and this close to the end of the acceleration lane
+    sumo_args: tuple[str, ...] = ()  # extra SUMO command-line options
+
+
+@dataclass(frozen=True)
+class ScenarioConfig:
+    n_avs: int = 4  # autonomous vehicles (the agents)
+    n_hvs: int = 12  # human-driven vehicles on the highway at reset
+    place_from: float = 0.0  # [m] along the highway from its first edge's start
+    place_to: float = 180.0  # [m] upstream placement window end
+    min_gap: float = 14.0  # [m] front-to-front spacing between placed vehicles in a lane, at least
+    max_gap: float = 30.0  # [m] ... and at most
+    speed_range: tuple[float, float] = (22.0, 28.0)  # [m/s] initial highway speeds
+    merger_pos: float = 5.0  # [m] start position along the ramp's first edge
+    merger_speed: tuple[float, float] = (18.0, 22.0)  # [m/s]
+    inflow: float = 0.0  # [veh/h] further HVs entering the highway start during the episode
+
+
+@dataclass(frozen=True)
+class DriverConfig:
+    """A vehicle type; HVs and the merging vehicle are driven by SUMO's models."""
+
+    accel: float = 2.6  # [m/s^2]
+    decel: float = 4.5  # [m/s^2]
+    emergency_decel: float = 9.0  # [m/s^2]
+    max_speed: float = 33.0  # [m/s]
+    length: float = 5.0  # [m]
+    width: float = 1.8  # [m]
+    min_gap: float = 2.5  # [m]
+    car_follow_model: str = "IDM"
+    lane_change_model: str = "LC2013"  # or SL2015
+    speed_factor: str = "normc(1,0.1,0.8,1.2)"  # SUMO distribution of desired speed / limit
+    tau_range: tuple[float, float] = (1.0, 1.6)  # [s] per-vehicle headway, drawn uniformly
+    sigma_range: tuple[float, float] = (0.0, 0.3)  # [-] per-vehicle driver imperfection
+    lc_params: Mapping[str, float] = field(default_factory=dict)  # e.g. {lcCooperative: 0.2}
+
+
+@dataclass(frozen=True)
+class AVConfig:
+    accel: float = 3.0  # [m/s^2] applied by the env: SUMO's own limits are off for AVs
+    decel: float = 5.0  # [m/s^2]
+    max_speed: float = 33.0  # [m/s]
+    speed_step: float = 2.5  # [m/s] target-speed change of accelerate / decelerate
+    length: float = 5.0  # [m]
+    width: float = 1.8  # [m]
+
+
+@dataclass(frozen=True)
+class ObservationConfig:
+    preset: str = "default"  # one of OBSERVATION_PRESETS; the size keys below override it
+    channels: tuple[str, ...] = CHANNELS
+    frames: int | None = None  # stacked frames
+    height_px: int | None = None  # lateral pixels
+    width_px: int | None = None  # longitudinal pixels
+    length_m: float | None = None  # [m] longitudinal extent of the window
+    width_m: float | None = None  # [m] lateral extent of the window
+    ego_at: float = 0.5  # ego's longitudinal place in the window, 0 = rear edge, 1 = front edge
+    speed_scale: float = 15.0  # [m/s] relative speed that moves a pixel by 1
+    dtype: str = "float32"  # float32 | float16 | uint8
+
+    def __post_init__(self) -> None:
+        preset = OBSERVATION_PRESETS.get(self.preset)
+        if preset is None:
+            raise ConfigError(
+                f"observation.preset: unknown preset {self.preset!r}; expected one of {sorted(OBSERVATION_PRESETS)}"
+            )
+        for key, value in preset.items():
+            if getattr(self, key) is None:
+                object.__setattr__(self, key, value)
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    # SVO angle [rad]: one value for all AVs, or one per AV. 0 egoistic, pi/4 altruistic, pi/2 fully.
+    phi: float | tuple[float, ...] = 0.0
+    # Weights of the named utility terms (REWARD_TERMS); unlisted terms keep their default.
+    weights: Mapping[str, float] = field(default_factory=dict)
+
+    def weight(self, term: str) -> float:
+        return float(self.weights.get(term, REWARD_TERMS[term]))
+
+
+@dataclass(frozen=True)
+class Config:
+    net: NetConfig = field(default_factory=NetConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+    scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
+    hv: DriverConfig = field(default_factory=DriverConfig)
+    merger: DriverConfig = field(default_factory=lambda: DriverConfig(max_speed=30.0, tau_range=(1.0, 1.0),
+                                                                      sigma_range=(0.0, 0.0)))
+    av: AVConfig = field(default_factory=AVConfig)
+    observation: ObservationConfig = field(default_factory=ObservationConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    # Sections owned by later stages (trainer, evaluation): kept as validated-by-them mappings.
+    train: Mapping[str, Any] = field(default_factory=dict)
+    evaluate: Mapping[str, Any] = field(default_factory=dict)
+    source: str | None = None  # the YAML file this came from, if any
+
+    @property
+    def steps_per_decision(self) -> int:
+        return max(1, round(self.sim.decision_period / self.sim.step_length))
+
+    def phis(self) -> tuple[float, ...]:
+        """The SVO angle of each AV [rad]."""
+        phi = self.reward.phi
+        return tuple(phi) if isinstance(phi, tuple) else (float(phi),) * self.scenario.n_avs
+
+    def to_dict(self) -> dict[str, Any]:
+        """A plain dict that `load_config` turns back into an equal config (paths stay resolved)."""
+        out = _plain(dataclasses.asdict(self))
+        out.pop("source")
+        return out
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    return value
+
+
+def load_config(
+    config: str | Path | Mapping[str, Any] | Config | None = None,
+    overrides: Mapping[str, Any] | Sequence[str] | None = None,
+) -> Config:
+    """Load and validate a config from a YAML path, a dict, or an existing `Config`, applying overrides."""
+    base_dir = Path.cwd()
+    source = None
+    if config is None:
+        data: dict[str, Any] = {}
+    elif isinstance(config, Config):
+        data, source = config.to_dict(), config.source
+    elif isinstance(config, Mapping):
+        data = _plain(dict(config))
+    else:
+        path = Path(config)
+        if not path.is_file():
+            raise ConfigError(f"config file {path}: not found")
+        try:
+            loaded = yaml.safe_load(path.read_text())
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"config file {path}: not valid YAML ({exc})") from None
+        if loaded is not None and not isinstance(loaded, dict):
+            raise ConfigError(f"config file {path}: expected a mapping of sections at top level")
+        data, base_dir, source = loaded or {}, path.resolve().parent, str(path)
+    for key, value in _parse_overrides(overrides).items():
+        _set_dotted(data, key, value)
+    cfg = _build(Config, data, "")
+    net = cfg.net
+    net = dataclasses.replace(
+        net,
+        file=str(_resolve(net.file, base_dir)),
+        description=None if net.description is None else str(_resolve(net.description, base_dir)),
+    )
+    cfg = dataclasses.replace(cfg, net=net, source=source)
+    validate(cfg)
+    return cfg
+
+
+def _resolve(path: str, base: Path) -> Path:
+    p = Path(path).expanduser()
+    return p if p.is_absolute() else (base / p).resolve()
+
+
+def _parse_overrides(overrides: Mapping[str, Any] | Sequence[str] | None) -> dict[str, Any]:
+    if overrides is None:
+        return {}
+    if isinstance(overrides, Mapping):
+        return dict(overrides)
+    parsed = {}
+    for item in overrides:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"override {item!r}: expected KEY=VALUE, e.g. reward.phi=0.785")
+        parsed[key.strip()] = yaml.safe_load(raw)
+    return parsed
+
+
+def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
+    node = data
+    *parents, leaf = key.split(".")
+    for i, part in enumerate(parents):
+        child = node.setdefault(part, {})
+        if not isinstance(child, dict):
+            raise ConfigError(f"override {key}: {'.'.join(parents[: i + 1])} is not a section")
+        node = child
+    node[leaf] = value
+
+
+def _build(cls: type, data: Any, where: str) -> Any:
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"{where or 'config'}: expected a mapping, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+    unknown = set(data) - set(fields) - {"source"}
+    if unknown:
+        name = sorted(unknown)[0]
+        raise ConfigError(
+            f"config key {where + '.' if where else ''}{name}: unknown; expected one of {sorted(fields)}"
+        )
+    kwargs = {}
+    for name, value in data.items():
+        if name == "source":
+            continue
+        kwargs[name] = _coerce(hints[name], value, f"{where + '.' if where else ''}{name}")
+    try:
+        return cls(**kwargs)
+    except TypeError as exc:  # pragma: no cover - dataclass signature mismatch is a bug
+        raise ConfigError(f"{where or 'config'}: {exc}") from None
+
+
+def _coerce(tp: Any, value: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp):
+        return _build(tp, value, where)
+    if origin in (typing.Union, types.UnionType):
+        options = typing.get_args(tp)
+        if value is None and type(None) in options:
+            return None
+        errors = []
+        for option in options:
+            if option is type(None):
+                continue
+            try:
+                return _coerce(option, value, where)
+            except ConfigError as exc:
+                errors.append(str(exc))
+        raise ConfigError(errors[-1] if errors else f"{where}: bad value {value!r}")
+    if origin is tuple:
+        args = typing.get_args(tp)
+        if not isinstance(value, list | tuple):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_coerce(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
+        if len(value) != len(args):
+            raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
+        return tuple(_coerce(a, v, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value, strict=True)))
+    if origin in (Mapping, dict) or tp is Mapping:
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
+        args = typing.get_args(tp)
+        vt = args[1] if args else Any
+        return types.MappingProxyType({str(k): _coerce(vt, v, f"{where}.{k}") for k, v in value.items()})
+    if tp is Any:
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return value
+    raise ConfigError(f"{where}: unsupported type {tp}")  # pragma: no cover
+
+
+def validate(cfg: Config) -> None:
+    """Cross-field checks that a single field's type cannot express."""
+    sc, sim, obs = cfg.scenario, cfg.sim, cfg.observation
+
+    def positive(where: str, value: float, strict: bool = True) -> None:
+        if value < 0 or (strict and value == 0):
+            raise ConfigError(f"{where}: must be {'> 0' if strict else '>= 0'}, got {value}")
+
+    positive("scenario.n_avs", sc.n_avs)
+    positive("scenario.n_hvs", sc.n_hvs, strict=False)
+    positive("scenario.inflow", sc.inflow, strict=False)
+    positive("scenario.min_gap", sc.min_gap)
+    positive("sim.step_length", sim.step_length)
+    positive("sim.decision_period", sim.decision_period)
+    positive("sim.horizon", sim.horizon)
+    if sim.decision_period < sim.step_length:
+        raise ConfigError("sim.decision_period: must be at least sim.step_length")
+    if sc.max_gap < sc.min_gap:
+        raise ConfigError(f"scenario.max_gap: must be >= scenario.min_gap ({sc.min_gap}), got {sc.max_gap}")
+    if sc.place_to <= sc.place_from:
+        raise ConfigError("scenario.place_to: must be greater than scenario.place_from")
+    for name in ("speed_range", "merger_speed"):
+        lo, hi = getattr(sc, name)
+        if not 0 <= lo <= hi:
+            raise ConfigError(f"scenario.{name}: expected [low, high] with 0 <= low <= high, got {[lo, hi]}")
+    for section in ("hv", "merger"):
+        drv: DriverConfig = getattr(cfg, section)
+        for name in ("tau_range", "sigma_range"):
+            lo, hi = getattr(drv, name)
+            if not 0 <= lo <= hi:
+                raise ConfigError(f"{section}.{name}: expected [low, high] with 0 <= low <= high")
+        if drv.lane_change_model not in ("LC2013", "SL2015"):
+            raise ConfigError(f"{section}.lane_change_model: expected LC2013 or SL2015, got "
+                              f"{drv.lane_change_model!r}")
+    for name in ("accel", "decel", "max_speed", "speed_step"):
+        positive(f"av.{name}", getattr(cfg.av, name))
+    for name in ("frames", "height_px", "width_px", "length_m", "width_m", "speed_scale"):
+        positive(f"observation.{name}", getattr(obs, name))
+    if not 0.0 <= obs.ego_at <= 1.0:
+        raise ConfigError(f"observation.ego_at: must be within [0, 1], got {obs.ego_at}")
+    bad = [c for c in obs.channels if c not in CHANNELS]
+    if bad or not obs.channels or len(set(obs.channels)) != len(obs.channels):
+        raise ConfigError(f"observation.channels: expected distinct names from {list(CHANNELS)}, got "
+                          f"{list(obs.channels)}")
+    if obs.dtype not in ("float32", "float16", "uint8"):
+        raise ConfigError(f"observation.dtype: expected float32, float16 or uint8, got {obs.dtype!r}")
+    unknown_terms = sorted(set(cfg.reward.weights) - set(REWARD_TERMS))
+    if unknown_terms:
+        raise ConfigError(f"reward.weights.{unknown_terms[0]}: unknown term; expected one of {sorted(REWARD_TERMS)}")
+    phis = cfg.reward.phi
+    if isinstance(phis, tuple) and len(phis) != sc.n_avs:
+        raise ConfigError(f"reward.phi: a list needs one angle per AV ({sc.n_avs}), got {len(phis)}")
+    for phi in phis if isinstance(phis, tuple) else (phis,):
+        if not -math.pi <= phi <= math.pi:
+            raise ConfigError(f"reward.phi: expected an angle in radians within [-pi, pi], got {phi}")

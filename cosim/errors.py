@@ -1,0 +1,17 @@
+"""The toolkit's exceptions: every user-facing failure is one of these, with a message naming the file or key."""
+
+
+class CosimError(Exception):
+    """Base class: the CLI prints these as one line instead of a traceback."""
+
+
+class ConfigError(CosimError):
+    """A config file or override is missing, malformed, or names an unknown key / bad value."""
+
+
+class NetError(CosimError):
+    """A net file or net description is missing, malformed, or inconsistent with the net."""
+
+
+class SimulationError(CosimError):
+    """SUMO failed to start, crashed, or a second simulation was requested in one process."""

@@ -1,0 +1,71 @@
+"""The state of every vehicle at one instant, as numpy arrays: what everything downstream of libsumo reads.
+
+Contract: a `Snapshot` is produced by `cosim.session` once per decision step and never refers back to
+libsumo, so observation, reward and termination are pure functions of it (and unit-testable on
+hand-built snapshots, see `Snapshot.build`). Row order is arbitrary; use `row_of` to find a vehicle.
+Positions are vehicle centres in SUMO's world frame [m]; headings are radians, counter-clockwise from +x.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+KIND_AV, KIND_HV, KIND_MERGER = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    time: float  # [s] simulation time
+    ids: tuple[str, ...]  # (V,) vehicle ids
+    kind: np.ndarray  # (V,) int8: KIND_AV | KIND_HV | KIND_MERGER
+    x: np.ndarray  # (V,) float64 [m] centre
+    y: np.ndarray  # (V,) float64 [m] centre
+    heading: np.ndarray  # (V,) float64 [rad]
+    speed: np.ndarray  # (V,) float64 [m/s]
+    edge: np.ndarray  # (V,) int32 index into RoadNet.edge_ids; -1 on a junction-internal edge
+    lane: np.ndarray  # (V,) int32 lane index on that edge (0 = rightmost)
+    lane_pos: np.ndarray  # (V,) float64 [m] from the start of the lane
+    distance: np.ndarray  # (V,) float64 [m] odometer since insertion
+    length: np.ndarray  # (V,) float64 [m]
+    width: np.ndarray  # (V,) float64 [m]
+    crashed: np.ndarray  # (V,) bool: in a collision during the last decision period
+    arrived: frozenset[str] = frozenset()  # vehicles that left the network during the last period
+    _rows: dict[str, int] = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self._rows.update({vid: i for i, vid in enumerate(self.ids)})
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def row_of(self, vid: str) -> int:
+        """Row of a vehicle, or -1 if it is not in the simulation."""
+        return self._rows.get(vid, -1)
+
+    def rows_of(self, vids: Sequence[str]) -> np.ndarray:
+        """(N,) int rows of several vehicles, -1 where absent."""
+        return np.array([self._rows.get(v, -1) for v in vids], dtype=np.int64)
+
+    @classmethod
+    def build(cls, time: float = 0.0, **columns: Sequence) -> Snapshot:
+        """A snapshot from per-vehicle lists, with defaults for omitted columns (for tests and tools)."""
+        ids = tuple(columns.pop("ids"))
+        n = len(ids)
+        arrived = frozenset(columns.pop("arrived", ()))
+        defaults = {
+            "kind": (np.int8, KIND_HV), "x": (np.float64, 0.0), "y": (np.float64, 0.0),
+            "heading": (np.float64, 0.0), "speed": (np.float64, 0.0), "edge": (np.int32, 0),
+            "lane": (np.int32, 0), "lane_pos": (np.float64, 0.0), "distance": (np.float64, 0.0),
+            "length": (np.float64, 5.0), "width": (np.float64, 1.8), "crashed": (np.bool_, False),
+        }
+        unknown = set(columns) - set(defaults)
+        if unknown:
+            raise TypeError(f"unknown snapshot columns {sorted(unknown)}")
+        arrays = {
+            name: (np.asarray(columns[name], dtype=dt) if name in columns else np.full(n, fill, dtype=dt))
+            for name, (dt, fill) in defaults.items()
+        }
+        return cls(time=time, ids=ids, arrived=arrived, **arrays)
