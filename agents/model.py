@@ -1,0 +1,98 @@
+"""Actor-critic network of the paper's Table 1: a Conv3D feature extractor over stacked VelocityMaps.
+
+Contract: `ActorCritic(obs_shape, n_actions)` takes observations shaped like the env's observation space,
+`(B, F, C, H, W)` (F stacked frames, C channels), of dtype float32, float16 or uint8 (uint8 is scaled by
+1/255), and returns action logits `(B, n_actions)` and state values `(B,)`. Frames are Conv3D's depth axis
+and channels its channels. The flatten size follows from the observation shape by a dummy forward, so the
+paper preset (10, 4, 64, 512) and the CPU default (5, 4, 32, 128) build from the same code.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+
+@dataclass(frozen=True)
+class Conv3dSpec:
+    channels: int
+    kernel: tuple[int, int, int]  # (depth = frames, height, width)
+    stride: tuple[int, int, int]
+    padding: tuple[int, int, int]
+
+
+# Table 1's kernels. Strides shrink the map; depth padding 1 on the 3-deep kernels keeps any F >= 1 valid,
+# the last layer halves everything so the FC input stays moderate at the paper size (64*5*4*32 = 40960).
+CONV_LAYERS: tuple[Conv3dSpec, ...] = (
+    Conv3dSpec(32, (1, 8, 8), (1, 4, 4), (0, 2, 2)),
+    Conv3dSpec(64, (3, 4, 4), (1, 2, 2), (1, 1, 1)),
+    Conv3dSpec(64, (3, 3, 3), (2, 2, 2), (1, 1, 1)),
+)
+
+
+def _init(layer: nn.Module, gain: float) -> nn.Module:
+    """Orthogonal weights, zero biases (the usual A2C/PPO initialisation)."""
+    nn.init.orthogonal_(layer.weight, gain)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+class ActorCritic(nn.Module):
+    """Feature extractor (Conv3D x3 -> FC) shared by an actor head (logits) and a critic head (value)."""
+
+    def __init__(self, obs_shape: tuple[int, ...], n_actions: int = 5, *, feature_dim: int = 512,
+                 head_hidden: int = 256) -> None:
+        super().__init__()
+        if len(obs_shape) != 4:
+            raise ValueError(f"observation shape must be (frames, channels, height, width), got {obs_shape}")
+        self.obs_shape = tuple(int(s) for s in obs_shape)
+        self.n_actions = n_actions
+        frames, channels, height, width = self.obs_shape
+        relu_gain = math.sqrt(2.0)
+        layers: list[nn.Module] = []
+        in_ch = channels
+        for spec in CONV_LAYERS:
+            layers += [_init(nn.Conv3d(in_ch, spec.channels, spec.kernel, spec.stride, spec.padding), relu_gain),
+                       nn.ReLU()]
+            in_ch = spec.channels
+        self.conv = nn.Sequential(*layers, nn.Flatten())
+        with torch.no_grad():  # the flatten size follows from the observation shape
+            try:
+                n_flat = self.conv(torch.zeros(1, channels, frames, height, width)).shape[1]
+            except RuntimeError as exc:
+                raise ValueError(f"observation shape {obs_shape} is too small for the Conv3D stack: {exc}") from None
+        self.fc = nn.Sequential(_init(nn.Linear(n_flat, feature_dim), relu_gain), nn.ReLU())
+        self.actor = nn.Sequential(_init(nn.Linear(feature_dim, head_hidden), relu_gain), nn.ReLU(),
+                                   _init(nn.Linear(head_hidden, n_actions), 0.01))
+        self.critic = nn.Sequential(_init(nn.Linear(feature_dim, head_hidden), relu_gain), nn.ReLU(),
+                                    _init(nn.Linear(head_hidden, 1), 1.0))
+
+    def features(self, obs: torch.Tensor) -> torch.Tensor:
+        """(B, F, C, H, W) any dtype -> (B, feature_dim)."""
+        x = obs.float() / 255.0 if obs.dtype == torch.uint8 else obs.float()
+        x = x.permute(0, 2, 1, 3, 4)  # (B, C, F, H, W): channels as Conv3D channels, frames as depth
+        return self.fc(self.conv(x))
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, F, C, H, W) -> logits (B, A), values (B,)."""
+        h = self.features(obs)
+        return self.actor(h), self.critic(h).squeeze(-1)
+
+    def value(self, obs: torch.Tensor) -> torch.Tensor:
+        """(B, F, C, H, W) -> (B,)."""
+        return self.critic(self.features(obs)).squeeze(-1)
+
+    @torch.no_grad()
+    def act(self, obs: np.ndarray | torch.Tensor, greedy: bool = False) -> np.ndarray:
+        """Actions (B,) int64 for an observation batch (B, F, C, H, W): argmax if greedy, else sampled."""
+        device = next(self.parameters()).device
+        if isinstance(obs, np.ndarray):
+            obs = torch.from_numpy(obs if obs.flags.writeable else obs.copy())  # env views are read-only
+        logits, _ = self(obs.to(device))
+        if greedy:
+            return logits.argmax(-1).cpu().numpy()
+        return torch.distributions.Categorical(logits=logits).sample().cpu().numpy()

@@ -1,0 +1,244 @@
+"""The on-ramp merge as a PettingZoo ParallelEnv over a real SUMO (libsumo).
+
+Contract: agents `av_0 .. av_{N-1}` drive with the paper's 5 meta-actions (`cosim.control.Action`) and
+observe a stacked VelocityMap (frames, channels, height, width); rewards are the SVO rewards of
+`cosim.reward`, with every weighted term in `infos[agent]["reward_terms"]`. An agent terminates when its
+AV crashes or leaves the net; all agents terminate when the merging vehicle crashes or gets stuck at the
+end of the acceleration lane; all are truncated at the horizon. On the last step every agent's info
+carries `"episode"`, the episode's summary. Observations are read-only views valid until the next step.
+
+`step` is a template of small hooks: act -> simulate -> snapshot -> observe -> reward -> end.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import shutil
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import numpy as np
+from pettingzoo import ParallelEnv
+
+from cosim.config import Config, load_config
+from cosim.control import N_ACTIONS, Action, decide
+from cosim.episode import MergeZone, merge_status
+from cosim.netdesc import load_net_description
+from cosim.reward import svo_rewards, utility_terms, weighted_utility
+from cosim.roadnet import load_roadnet
+from cosim.scenario import av_id, kind_of, plan_episode, write_episode
+from cosim.session import SumoSession
+from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
+from cosim.velocity_map import VelocityMapper, rasterize_road
+
+
+class MergeEnv(ParallelEnv):
+    metadata = {"name": "cosim_merge_v0", "render_modes": ["rgb_array"], "is_parallelizable": True,
+                "render_fps": 10}
+
+    def __init__(self, config: Config, render_mode: str | None = None) -> None:
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
+        self.cfg = config
+        self.render_mode = render_mode
+        self.road = load_roadnet(Path(config.net.file))
+        self.desc = load_net_description(
+            self.road, None if config.net.description is None else Path(config.net.description))
+        self.zone = MergeZone.from_net(self.desc, self.road)
+        self.possible_agents = [av_id(i) for i in range(config.scenario.n_avs)]
+        self.agents: list[str] = []
+        self.road_raster = rasterize_road(self.road.lane_shapes())
+        self.mapper = VelocityMapper(config.observation, self.road_raster, len(self.possible_agents))
+        self._obs_space = gymnasium.spaces.Box(low=0, high=self.mapper.high, shape=self.mapper.shape,
+                                               dtype=self.mapper.dtype)
+        self._act_space = gymnasium.spaces.Discrete(N_ACTIONS)
+        # Lanes an AV may use on each edge: through lanes only, never an acceleration lane.
+        self._usable = {self.road.edge_index[e]: frozenset(self.desc.through_lanes(self.road, e))
+                        for e in self.road.edge_ids}
+        self._phis = np.asarray(config.phis(), dtype=np.float64)
+        self.max_steps = max(1, round(config.sim.horizon / config.sim.decision_period))
+        self._next_seed = config.sim.seed
+        self._tmp = Path(tempfile.mkdtemp(prefix="cosim_"))
+        self.session = SumoSession(Path(config.net.file), config.sim.step_length, config.sim.sumo_args,
+                                   config.sim.collision_mingap_factor, self.road.edge_index, kind_of)
+        self._snap: Snapshot | None = None
+
+    # -- PettingZoo API -----------------------------------------------------------------------------
+    @functools.lru_cache(maxsize=None)  # noqa: B019 - spaces must be the same object per agent
+    def observation_space(self, agent: str) -> gymnasium.spaces.Box:
+        return self._obs_space
+
+    @functools.lru_cache(maxsize=None)  # noqa: B019
+    def action_space(self, agent: str) -> gymnasium.spaces.Discrete:
+        return self._act_space
+
+    def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        if seed is None:
+            seed = self._next_seed
+        self._next_seed = seed + 1
+        self.episode_seed = seed
+        route_file = self._tmp / "episode.rou.xml"
+        write_episode(plan_episode(self.cfg, self.desc, self.road, seed), self.cfg, self.desc, route_file)
+        self.session.load(route_file, seed)
+        self.agents = list(self.possible_agents)
+        snap = self.session.snapshot()
+        rows = snap.rows_of(self.possible_agents)
+        self._target = np.where(rows >= 0, snap.speed[np.maximum(rows, 0)], 0.0)
+        self._dist = dict(zip(snap.ids, snap.distance, strict=True))
+        self._speed = dict(zip(snap.ids, snap.speed, strict=True))
+        self._start_ids = set(snap.ids)
+        self._merged_at: float | None = None
+        self._n_steps = 0
+        self._any_crash = False
+        self.mapper.reset()
+        self.mapper.update(snap, rows)
+        self._snap = snap
+        obs = {a: self.mapper.observation(i) for i, a in enumerate(self.possible_agents)}
+        return obs, {a: {"seed": seed} for a in self.agents}
+
+    def step(self, actions: Mapping[str, int]) -> tuple[dict, dict, dict, dict, dict]:
+        if self._snap is None:
+            raise RuntimeError("step() before reset()")
+        acting = list(self.agents)
+        missing = [a for a in acting if a not in actions]
+        if missing:
+            raise ValueError(f"step(): no action for live agents {missing}")
+        prev = self._snap
+        idx = np.array([self.possible_agents.index(a) for a in acting], dtype=np.int64)
+        lane_changed, invalid = self._act(prev, acting, idx, actions)
+        self._simulate(acting, idx)
+        snap = self.session.snapshot()
+        rows = snap.rows_of(self.possible_agents)
+        self.mapper.update(snap, rows)
+        status = merge_status(snap, self.zone, self.cfg.sim.stuck_speed, self.cfg.sim.stuck_distance)
+        merged_now = status.merged and self._merged_at is None
+        if merged_now:
+            self._merged_at = snap.time
+        rewards, terms, ego_u, social_u = self._rewards(snap, rows, lane_changed, invalid, status.row, merged_now)
+        self._n_steps += 1
+        self._any_crash |= bool(snap.crashed.any())
+        # A merging vehicle gone without merging can only have been taken off the road: over too.
+        episode_over = status.crashed or status.stuck or (status.row < 0 and self._merged_at is None)
+        time_up = self._n_steps >= self.max_steps
+        obs, rew, term, trunc, infos = {}, {}, {}, {}, {}
+        for a in acting:
+            i = self.possible_agents.index(a)
+            r = rows[i]
+            gone = r < 0 or bool(snap.crashed[r])
+            term[a] = gone or episode_over
+            trunc[a] = time_up and not term[a]
+            obs[a] = self.mapper.observation(i)
+            rew[a] = float(rewards[i])
+            infos[a] = {"reward_terms": {k: float(v[i]) for k, v in terms.items()},
+                        "ego_utility": float(ego_u[i]), "social_utility": float(social_u[i]),
+                        "invalid_action": bool(invalid[i]), "merged": self._merged_at is not None}
+        self.agents = [a for a in acting if not (term[a] or trunc[a])]
+        if self.cfg.sim.remove_crashed and snap.crashed.any():
+            self.session.remove([v for v, c in zip(snap.ids, snap.crashed, strict=True) if c])
+        self._snap = snap
+        if not self.agents:
+            summary = self.episode_summary(snap, stuck=status.stuck)
+            for a in acting:
+                infos[a]["episode"] = summary
+        return obs, rew, term, trunc, infos
+
+    # -- step hooks ---------------------------------------------------------------------------------
+    def _act(self, prev: Snapshot, acting: list[str], idx: np.ndarray,
+             actions: Mapping[str, int]) -> tuple[np.ndarray, np.ndarray]:
+        """Apply meta-actions; returns (lane_changed, invalid), each (N,) over possible agents."""
+        n = len(self.possible_agents)
+        lane_changed, invalid = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+        rows = prev.rows_of(acting)
+        present = rows >= 0
+        if not present.any():
+            return lane_changed, invalid
+        idx, rows = idx[present], rows[present]
+        acts = np.array([int(actions[a]) for a, p in zip(acting, present, strict=True) if p])
+        through = [self._usable.get(int(e), frozenset()) for e in prev.edge[rows]]
+        d = decide(acts, prev.lane[rows], through, self._target[idx], self.cfg.av)
+        self._target[idx] = d.target_speed
+        for i, change in zip(idx, d.lane_change, strict=True):
+            if change:
+                self.session.change_lane(self.possible_agents[i], int(change), self.cfg.sim.decision_period)
+        lane_changed[idx] = d.lane_change != 0
+        invalid[idx] = d.invalid
+        return lane_changed, invalid
+
+    def _simulate(self, acting: list[str], idx: np.ndarray) -> None:
+        av = self.cfg.av
+        targets = {a: float(self._target[i]) for a, i in zip(acting, idx, strict=True)}
+        self.session.advance(self.cfg.steps_per_decision, targets, av.accel, av.decel, av.max_speed)
+
+    def _rewards(self, snap: Snapshot, rows: np.ndarray, lane_changed: np.ndarray, invalid: np.ndarray,
+                 merger_row: int, merged_now: bool) -> tuple[np.ndarray, dict, np.ndarray, np.ndarray]:
+        period = self.cfg.sim.decision_period
+        prev_d = np.array([self._dist.get(v, 0.0) for v in snap.ids])
+        prev_v = np.array([self._speed.get(v, s) for v, s in zip(snap.ids, snap.speed, strict=True)])
+        self._dist.update(zip(snap.ids, snap.distance, strict=True))
+        self._speed.update(zip(snap.ids, snap.speed, strict=True))
+        v_lane, v_invalid, v_merged = (np.zeros(len(snap), dtype=bool) for _ in range(3))
+        present = rows >= 0
+        v_lane[rows[present]] = lane_changed[present]
+        v_invalid[rows[present]] = invalid[present]
+        if merged_now:
+            v_merged[merger_row] = True
+        raw = utility_terms(snap.distance - prev_d, snap.speed - prev_v, v_lane, v_invalid, snap.crashed,
+                            v_merged, max_speed=self.cfg.av.max_speed, max_accel=self.cfg.av.accel,
+                            period=period)
+        weighted = weighted_utility(raw, self.cfg.reward)
+        utility = sum(weighted.values())
+        observed = self.mapper.observed(snap, rows)
+        reward, ego, social = svo_rewards(utility, observed, rows, merger_row, self._phis)
+        safe = np.maximum(rows, 0)
+        terms = {k: np.where(present, v[safe], 0.0) if len(snap) else np.zeros(len(rows))
+                 for k, v in weighted.items()}
+        return reward, terms, ego, social
+
+    # -- summaries and rendering --------------------------------------------------------------------
+    def episode_summary(self, snap: Snapshot, stuck: bool) -> dict[str, Any]:
+        """Outcome of the episode for metrics: crash, merge, distances by class [m]."""
+        by_class: dict[int, list[float]] = {KIND_AV: [], KIND_HV: [], KIND_MERGER: []}
+        for vid in self._start_ids:
+            by_class[kind_of(vid)].append(self._dist.get(vid, 0.0))
+        every = [d for ds in by_class.values() for d in ds]
+        return {
+            "seed": self.episode_seed,
+            "length": self._n_steps,
+            "time": float(snap.time),
+            "crashed": self._any_crash,
+            "merged": self._merged_at is not None,
+            "merge_failed": stuck,
+            "time_to_merge": math.nan if self._merged_at is None else self._merged_at,
+            "mean_distance": float(np.mean(every)) if every else 0.0,
+            "av_distance": float(np.mean(by_class[KIND_AV])) if by_class[KIND_AV] else 0.0,
+            "hv_distance": float(np.mean(by_class[KIND_HV])) if by_class[KIND_HV] else 0.0,
+            "merger_distance": float(by_class[KIND_MERGER][0]) if by_class[KIND_MERGER] else 0.0,
+        }
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode != "rgb_array" or self._snap is None:
+            return None
+        from cosim.render import render_scene
+
+        return render_scene(self.road_raster, self._snap, self.mapper, self.cfg.observation)
+
+    def close(self) -> None:
+        self.session.close()
+        shutil.rmtree(self._tmp, ignore_errors=True)
+        self._snap = None
+
+    def __del__(self) -> None:  # an env dropped without close() must not keep the process's SUMO slot
+        session = getattr(self, "session", None)
+        if session is not None:
+            session.close()
+
+
+def parallel_env(config: str | Path | Mapping[str, Any] | Config | None = "configs/default.yaml",
+                 overrides: Mapping[str, Any] | list[str] | None = None,
+                 render_mode: str | None = None) -> MergeEnv:
+    """The PettingZoo way: `cosim.parallel_env(config="configs/default.yaml", overrides={"reward.phi": 0.785})`."""
+    return MergeEnv(load_config(config, overrides), render_mode=render_mode)

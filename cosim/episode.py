@@ -1,0 +1,60 @@
+"""When the merge succeeded or failed, and which agents are done (pure functions of a snapshot).
+
+Contract: `MergeZone.from_net(desc, road)` turns the net description into edge indices once;
+`merge_status(snap, zone, stuck_speed, stuck_distance)` says whether the merging vehicle is on a through
+lane of the highway (merged), stuck at the end of the acceleration lane (SUMO would hold it there forever:
+a failed merge), crashed, or gone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from cosim.netdesc import NetDescription
+from cosim.roadnet import RoadNet
+from cosim.snapshot import KIND_MERGER, Snapshot
+
+
+@dataclass(frozen=True)
+class MergeZone:
+    highway: frozenset[int]  # edge indices of the highway
+    merge_edge: int
+    accel_lanes: frozenset[int]
+    accel_end: float  # [m] length of the acceleration lane
+
+    @classmethod
+    def from_net(cls, desc: NetDescription, road: RoadNet) -> MergeZone:
+        return cls(
+            highway=frozenset(road.edge_index[e] for e in desc.highway),
+            merge_edge=road.edge_index[desc.merge_edge],
+            accel_lanes=frozenset(desc.accel_lanes),
+            accel_end=min(road.lane(desc.merge_edge, i).length for i in desc.accel_lanes),
+        )
+
+    def on_through_lane(self, edge: np.ndarray, lane: np.ndarray) -> np.ndarray:
+        """(V,) bool: on a highway edge, and not on its acceleration lane."""
+        on_hw = np.isin(edge, list(self.highway))
+        on_accel = (edge == self.merge_edge) & np.isin(lane, list(self.accel_lanes))
+        return on_hw & ~on_accel
+
+
+@dataclass(frozen=True)
+class MergeStatus:
+    row: int  # merging vehicle's row, -1 if gone
+    merged: bool  # on a through lane, not crashed
+    stuck: bool  # stopped at the end of the acceleration lane
+    crashed: bool
+
+
+def merge_status(snap: Snapshot, zone: MergeZone, stuck_speed: float, stuck_distance: float) -> MergeStatus:
+    rows = np.flatnonzero(snap.kind == KIND_MERGER)
+    if rows.size == 0:
+        return MergeStatus(row=-1, merged=False, stuck=False, crashed=False)
+    r = int(rows[0])
+    crashed = bool(snap.crashed[r])
+    merged = bool(zone.on_through_lane(snap.edge[r:r + 1], snap.lane[r:r + 1])[0]) and not crashed
+    stuck = (snap.edge[r] == zone.merge_edge and int(snap.lane[r]) in zone.accel_lanes
+             and snap.lane_pos[r] >= zone.accel_end - stuck_distance and snap.speed[r] < stuck_speed)
+    return MergeStatus(row=r, merged=merged, stuck=bool(stuck), crashed=crashed)

@@ -1,0 +1,226 @@
+"""What the edges of a merge net mean: the highway chain, the on-ramp, the merge edge and its acceleration lanes.
+
+Contract: `load_net_description(roadnet, description_file)` returns a validated `NetDescription`. With a file
+it reads that YAML; without one it reads `<net stem>.yaml` beside the net if present, else infers the
+description from the net's lane topology. Every edge id, lane index and chainage used elsewhere in the
+toolkit comes from here, never from code. Problems raise `NetError` naming the file and the key:
+a missing file, unknown or missing keys, an edge not in the net, a lane index out of range, a merge edge not
+on the highway, edges that are not connected in the stated order, or a net whose merge cannot be inferred.
+
+YAML format (as written by `sumo_net.build`):
+
+    highway: [hw_in, hw_merge, hw_out]   # upstream -> downstream, includes the merge edge
+    ramp: [ramp]                         # upstream -> downstream, its last edge feeds the merge edge
+    merge_edge: hw_merge
+    accel_lanes: [0]                     # lanes of merge_edge that end (not through lanes)
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+from dataclasses import dataclass
+from itertools import accumulate
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from cosim.errors import NetError
+from cosim.roadnet import RoadNet
+
+log = logging.getLogger(__name__)
+
+KEYS = ("highway", "ramp", "merge_edge", "accel_lanes")
+EXAMPLE_YAML = "highway: [hw_in, hw_merge, hw_out]\nramp: [ramp]\nmerge_edge: hw_merge\naccel_lanes: [0]"
+
+
+@dataclass(frozen=True)
+class NetDescription:
+    highway: tuple[str, ...]  # highway edges, upstream -> downstream, including merge_edge
+    ramp: tuple[str, ...]  # ramp edges, upstream -> downstream, the last one feeding merge_edge
+    merge_edge: str  # the highway edge the ramp joins
+    accel_lanes: tuple[int, ...]  # lane indices of merge_edge that are not through lanes
+    source: str  # the description file's path, or "inferred"
+
+    def highway_offsets(self, roadnet: RoadNet) -> dict[str, float]:
+        """Chainage [m] of each highway edge's start: the sum of the edge lengths before it (junctions ignored)."""
+        lengths = [roadnet.edge_length(e) for e in self.highway]
+        return dict(zip(self.highway, [0.0, *accumulate(lengths)][:-1], strict=True))
+
+    def highway_length(self, roadnet: RoadNet) -> float:
+        """[m] sum of the highway edges' lengths."""
+        return float(sum(roadnet.edge_length(e) for e in self.highway))
+
+    def highway_position(self, roadnet: RoadNet, s: float) -> tuple[str, float]:
+        """The highway edge and position on it [m] at chainage `s` [m]; ValueError outside the highway."""
+        offsets = self.highway_offsets(roadnet)
+        total = self.highway_length(roadnet)
+        if not 0.0 <= s <= total:
+            raise ValueError(f"chainage {s} m is outside the highway [0, {total:.2f}] m")
+        starts = list(offsets.values())
+        i = bisect.bisect_right(starts, s) - 1
+        edge = self.highway[i]
+        return edge, min(s - starts[i], roadnet.edge_length(edge))
+
+    def through_lanes(self, roadnet: RoadNet, edge: str) -> tuple[int, ...]:
+        """Lane indices of `edge` that carry through traffic (all lanes but the acceleration lanes)."""
+        skip = set(self.accel_lanes) if edge == self.merge_edge else set()
+        return tuple(i for i in range(roadnet.num_lanes(edge)) if i not in skip)
+
+
+def load_net_description(roadnet: RoadNet, description_file: str | Path | None = None) -> NetDescription:
+    """The description of `roadnet`: from `description_file`, else `<net stem>.yaml` beside the net, else inferred."""
+    if description_file is not None:
+        path = Path(description_file)
+        if not path.is_file():
+            raise NetError(f"net description {path}: not found")
+        return _from_yaml(roadnet, path)
+    stem = roadnet.net_file.name.removesuffix(".gz").removesuffix(".xml").removesuffix(".net")
+    beside = roadnet.net_file.with_name(f"{stem}.yaml")
+    if beside.is_file():
+        return _from_yaml(roadnet, beside)
+    desc = infer_net_description(roadnet)
+    log.info("net %s: no description file, inferred %s", roadnet.net_file, desc)
+    return desc
+
+
+def _from_yaml(roadnet: RoadNet, path: Path) -> NetDescription:
+    where = f"net description {path}"
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise NetError(f"{where}: not readable YAML ({exc})") from None
+    if not isinstance(data, dict):
+        raise NetError(f"{where}: expected a mapping with keys {list(KEYS)}, e.g.\n{EXAMPLE_YAML}")
+    for key in data:
+        if key not in KEYS:
+            raise NetError(f"{where}: unknown key {key!r}; expected {list(KEYS)}")
+    for key in KEYS:
+        if key not in data:
+            raise NetError(f"{where}: missing key {key!r}; expected {list(KEYS)}")
+    highway = _edge_list(data, "highway", where)
+    ramp = _edge_list(data, "ramp", where)
+    merge_edge = data["merge_edge"]
+    if not isinstance(merge_edge, str):
+        raise NetError(f"{where}: key merge_edge: expected an edge id, got {merge_edge!r}")
+    lanes = data["accel_lanes"]
+    if not isinstance(lanes, list) or any(isinstance(i, bool) or not isinstance(i, int) for i in lanes):
+        raise NetError(f"{where}: key accel_lanes: expected a list of lane indices, got {lanes!r}")
+    desc = NetDescription(tuple(highway), tuple(ramp), merge_edge, tuple(sorted(set(lanes))), str(path))
+    validate(roadnet, desc)
+    return desc
+
+
+def _edge_list(data: dict[str, Any], key: str, where: str) -> list[str]:
+    value = data[key]
+    if not isinstance(value, list) or not value or not all(isinstance(e, str) for e in value):
+        raise NetError(f"{where}: key {key}: expected a non-empty list of edge ids, got {value!r}")
+    return value
+
+
+def validate(roadnet: RoadNet, desc: NetDescription) -> None:
+    """Check `desc` against the net; raise `NetError` naming the key at fault."""
+    where = f"net description {desc.source}"
+    net = roadnet.net_file
+    for key, edges in (("highway", desc.highway), ("ramp", desc.ramp), ("merge_edge", (desc.merge_edge,))):
+        for e in edges:
+            if e not in roadnet.edges:
+                raise NetError(f"{where}: edge {e!r} (key {key}) does not exist in {net}; edges are: "
+                               f"{', '.join(roadnet.edge_ids)}")
+    if len(set(desc.highway)) != len(desc.highway) or set(desc.highway) & set(desc.ramp):
+        raise NetError(f"{where}: keys highway and ramp must list distinct edges, each once")
+    if desc.merge_edge not in desc.highway:
+        raise NetError(f"{where}: merge_edge {desc.merge_edge!r} is not in highway {list(desc.highway)}")
+    n = roadnet.num_lanes(desc.merge_edge)
+    for i in desc.accel_lanes:
+        if not 0 <= i < n:
+            raise NetError(f"{where}: key accel_lanes: lane {i} out of range; {desc.merge_edge!r} has lanes "
+                           f"0..{n - 1}")
+    if len(desc.accel_lanes) >= n:
+        raise NetError(f"{where}: key accel_lanes: leaves no through lane on {desc.merge_edge!r}")
+    for key, chain in (("highway", desc.highway), ("ramp", (*desc.ramp, desc.merge_edge))):
+        for a, b in zip(chain, chain[1:], strict=False):
+            if b not in roadnet.successors(a):
+                raise NetError(f"{where}: key {key}: edge {a!r} has no connection to {b!r} in {net}")
+
+
+def infer_net_description(roadnet: RoadNet) -> NetDescription:
+    """Find the on-ramp merge from the lane topology alone; raise `NetError` with a YAML example if ambiguous.
+
+    The ramp is a 1-lane edge that joins, through a junction, an edge with more lanes (the merge edge) which
+    also receives a highway edge: one with several lanes, or (for a 1-lane highway) the edge that does not
+    feed the dropped lane. Acceleration lanes are the merge edge's lanes that end there (no connection on
+    while other lanes have one) plus lanes fed only by the ramp.
+    """
+    found = []
+    for m in roadnet.edge_ids:
+        ends = _dropped_lanes(roadnet, m)
+        preds = roadnet.predecessors(m)
+        for r in preds:
+            others = [h for h in preds if h != r]
+            if roadnet.num_lanes(r) != 1 or roadnet.num_lanes(m) <= 1 or not others:
+                continue
+            ramp_targets = {j for _, j in roadnet.connections(r, m)}
+            if any(roadnet.num_lanes(h) > 1 for h in others) or (ends and ramp_targets <= ends):
+                found.append((m, r, others))
+    if len(found) != 1:
+        what = "none" if not found else ", ".join(f"ramp {r!r} -> {m!r}" for m, r, _ in found)
+        raise NetError(
+            f"net {roadnet.net_file}: cannot infer the net description: looked for a 1-lane ramp edge joining "
+            f"an edge with more lanes that also receives the highway, found {what}. Write a description YAML "
+            f"beside the net ({_stem_yaml(roadnet)}) or set net.description, with keys "
+            f"{', '.join(KEYS)}, e.g.\n{EXAMPLE_YAML}"
+        )
+    m, r, others = found[0]
+    fed_by_highway = {j for h in others for _, j in roadnet.connections(h, m)}
+    ramp_targets = {j for _, j in roadnet.connections(r, m)}
+    accel = sorted(_dropped_lanes(roadnet, m) | (ramp_targets - fed_by_highway))
+    upstream = max(others, key=lambda h: (len(roadnet.connections(h, m)), h))
+    highway = [*reversed(_chain(roadnet, upstream, upstream=True)), m]
+    desc_m = NetDescription((), (), m, tuple(accel), "inferred")
+    highway += _chain(roadnet, m, upstream=False, through=desc_m)[1:]
+    ramp = list(reversed(_chain(roadnet, r, upstream=True, one_lane=True)))
+    desc = NetDescription(tuple(highway), tuple(ramp), m, tuple(accel), "inferred")
+    validate(roadnet, desc)
+    return desc
+
+
+def _stem_yaml(roadnet: RoadNet) -> str:
+    return roadnet.net_file.name.removesuffix(".gz").removesuffix(".xml").removesuffix(".net") + ".yaml"
+
+
+def _dropped_lanes(roadnet: RoadNet, edge: str) -> set[int]:
+    """Lanes of `edge` with no connection onward while another lane of it has one (a lane drop)."""
+    lanes = roadnet.edge(edge).lanes
+    if not any(lane.successors for lane in lanes):
+        return set()  # the end of the net, not a lane drop
+    return {lane.index for lane in lanes if not lane.successors}
+
+
+def _chain(roadnet: RoadNet, start: str, *, upstream: bool, one_lane: bool = False,
+           through: NetDescription | None = None) -> list[str]:
+    """Edges from `start` following the strongest connection up- or downstream, `start` first."""
+    chain, seen = [start], {start}
+    while True:
+        cur = chain[-1]
+        if upstream:
+            # The predecessor with the most lanes connecting into `cur` (the highway beats a joining ramp).
+            cands = [(len(roadnet.connections(p, cur)), p) for p in roadnet.predecessors(cur)]
+        else:
+            lanes = through.through_lanes(roadnet, cur) if through else range(roadnet.num_lanes(cur))
+            counts: dict[str, int] = {}
+            for i in lanes:
+                for e, _ in roadnet.lane(cur, i).successors:
+                    counts[e] = counts.get(e, 0) + 1
+            cands = [(c, e) for e, c in counts.items()]
+        cands = [(c, e) for c, e in cands if e not in seen and (not one_lane or roadnet.num_lanes(e) == 1)]
+        if not cands:
+            return chain
+        cands.sort(reverse=True)
+        if len(cands) > 1 and cands[0][0] == cands[1][0]:
+            log.warning("net %s: %s of %r is ambiguous (%s); stopping there", roadnet.net_file,
+                        "upstream" if upstream else "downstream", cur, [e for _, e in cands])
+            return chain
+        chain.append(cands[0][1])
+        seen.add(cands[0][1])

@@ -1,0 +1,308 @@
+"""The stacked, ego-centred VelocityMap observation: pure numpy rasters of a `Snapshot`.
+
+Contract:
+- `rasterize_road(lane_shapes)` turns lane polylines into a world-frame `RoadRaster`, once per net.
+- `VelocityMapper(cfg, road, n_agents)` owns one ring buffer per agent, allocated once. Each
+  `update(snap, ego_rows)` renders one frame per agent and pushes it; `observation(agent)` is that agent's
+  (F, C, H, W) stack, oldest to newest, as a read-only view that stays valid until the next `update`.
+- Frame geometry (pixel [h, w]): the window is cfg.length_m x cfg.width_m, centred laterally on the ego
+  and aligned with its heading. w runs along the heading (0 = rear edge, W-1 = front edge; the ego sits at
+  fraction cfg.ego_at from the rear); h runs across it (0 = the ego's left edge, H-1 = its right edge).
+- Channels follow cfg.channels: `road` is 1 on road (nearest raster cell at the pixel centre); `avs`
+  (other AVs), `hvs` (human vehicles) and `ego_merger` (the ego, value 1, and the merging vehicle) hold
+  clip(0.5 + 0.5 * (v - v_ego) / speed_scale, 1/255, 1) over each vehicle's rotated footprint, so 0 always
+  means empty. uint8 stores round(value * 255); float dtypes store the value.
+- An agent whose ego row is -1 (not in the simulation) gets an all-zero frame.
+Nothing here touches libsumo: everything is a function of the snapshot, the config and the raster.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from cosim.config import ObservationConfig
+from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
+
+# Long segments are cut into pieces so each piece's bounding box (the cells it tests) stays small,
+# even for a diagonal kilometre of road.
+_MAX_PIECE_M = 50.0
+
+
+@dataclass(frozen=True)
+class RoadRaster:
+    grid: np.ndarray  # (Ny, Nx) bool/uint8, nonzero = road; row i is y, column j is x (world frame)
+    origin: tuple[float, float]  # [m] world (x, y) of the corner of cell [0, 0]
+    resolution: float  # [m/cell]
+
+    def sample(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Whether the world points (x, y) [m] lie on road (nearest cell; outside the grid is off-road)."""
+        j = np.floor((np.asarray(x, dtype=np.float64) - self.origin[0]) / self.resolution).astype(np.int64)
+        i = np.floor((np.asarray(y, dtype=np.float64) - self.origin[1]) / self.resolution).astype(np.int64)
+        ny, nx = self.grid.shape
+        inside = (i >= 0) & (i < ny) & (j >= 0) & (j < nx)
+        out = np.zeros(np.shape(j), dtype=bool)
+        out[inside] = self.grid[i[inside], j[inside]] != 0
+        return out
+
+
+def rasterize_road(
+    lane_shapes: list[tuple[np.ndarray, float]], resolution: float = 0.25, margin: float = 10.0
+) -> RoadRaster:
+    """Rasterise lanes, each a (K, 2) polyline [m] with a width [m]: a cell is road if its centre lies
+    within width / 2 of the polyline. The grid spans every polyline point plus `margin` [m]."""
+    if not lane_shapes:
+        raise ValueError("rasterize_road: no lanes given")
+    shapes = [(np.asarray(p, dtype=np.float64).reshape(-1, 2), float(w)) for p, w in lane_shapes]
+    # The margin must hold the widest lane's half-width, or its edge would be cut off by the grid.
+    margin = max(margin, max(w for _, w in shapes) / 2 + resolution)
+    points = np.concatenate([p for p, _ in shapes])
+    lo = points.min(axis=0) - margin
+    hi = points.max(axis=0) + margin
+    nx, ny = (int(math.ceil(n)) for n in (hi - lo) / resolution)
+    grid = np.zeros((ny, nx), dtype=bool)
+    for poly, width in shapes:
+        half = width / 2
+        if len(poly) == 1:  # a single point: a disc
+            poly = np.repeat(poly, 2, axis=0)
+        for a, b in zip(poly[:-1], poly[1:], strict=True):
+            pieces = max(1, int(math.ceil(np.hypot(*(b - a)) / _MAX_PIECE_M)))
+            knots = a + np.linspace(0.0, 1.0, pieces + 1)[:, None] * (b - a)
+            for p0, p1 in zip(knots[:-1], knots[1:], strict=True):
+                _mark_segment(grid, lo, resolution, p0, p1, half)
+    return RoadRaster(grid=grid, origin=(float(lo[0]), float(lo[1])), resolution=float(resolution))
+
+
+def _mark_segment(grid: np.ndarray, lo: np.ndarray, res: float, p0: np.ndarray, p1: np.ndarray,
+                  half: float) -> None:
+    """OR into `grid` the cells whose centre is within `half` of segment p0-p1 (vectorised over its bbox)."""
+    ny, nx = grid.shape
+    j0, i0 = np.floor((np.minimum(p0, p1) - half - lo) / res).astype(int)
+    j1, i1 = np.ceil((np.maximum(p0, p1) + half - lo) / res).astype(int) + 1
+    j0, i0, j1, i1 = max(j0, 0), max(i0, 0), min(j1, nx), min(i1, ny)
+    if j0 >= j1 or i0 >= i1:
+        return
+    cx = lo[0] + (np.arange(j0, j1) + 0.5) * res  # (J,) cell-centre x
+    cy = lo[1] + (np.arange(i0, i1) + 0.5) * res  # (I,) cell-centre y
+    d = p1 - p0
+    dd = float(d @ d)
+    rx = cx[None, :] - p0[0]  # (1, J)
+    ry = cy[:, None] - p0[1]  # (I, 1)
+    # Projection parameter of each centre onto the segment, clamped to its end points.
+    t = np.clip((rx * d[0] + ry * d[1]) / dd, 0.0, 1.0) if dd > 0 else np.zeros((len(cy), len(cx)))
+    dist2 = (rx - t * d[0]) ** 2 + (ry - t * d[1]) ** 2  # (I, J)
+    grid[i0:i1, j0:j1] |= dist2 <= half * half
+
+
+class VelocityMapper:
+    """Renders and stacks every agent's VelocityMap. See the module docstring for the frame semantics."""
+
+    def __init__(self, cfg: ObservationConfig, road: RoadRaster, n_agents: int) -> None:
+        self.cfg = cfg
+        self.n_agents = n_agents
+        f, c, h, w = cfg.frames, len(cfg.channels), cfg.height_px, cfg.width_px
+        self.shape: tuple[int, int, int, int] = (f, c, h, w)
+        self.dtype: np.dtype = np.dtype(cfg.dtype)
+        self.high: float = 255.0 if self.dtype == np.uint8 else 1.0
+        self._px_l = cfg.length_m / w  # [m] pixel size along the heading
+        self._px_w = cfg.width_m / h  # [m] pixel size across it
+        self._rear = cfg.ego_at * cfg.length_m  # [m] from the window's rear edge to the ego
+        # Footprint samples no further apart than half a pixel, so a vehicle leaves no holes.
+        self._spacing = 0.5 * min(self._px_l, self._px_w)
+
+        ch = {name: i for i, name in enumerate(cfg.channels)}
+        self._road_ch = ch.get("road", -1)
+        self._ego_ch = ch.get("ego_merger", -1)
+        self._ch_of_kind = np.full(3, -1, dtype=np.int64)  # indexed by KIND_*
+        self._ch_of_kind[KIND_AV] = ch.get("avs", -1)
+        self._ch_of_kind[KIND_HV] = ch.get("hvs", -1)
+        self._ch_of_kind[KIND_MERGER] = self._ego_ch
+
+        # Ring of 2F frames per agent: frame k goes to slots k % F and k % F + F, so the F frames ending at
+        # the newest copy are always contiguous and the stack is a view, never a copy.
+        self._buf = np.zeros((n_agents, 2 * f, c, h, w), dtype=self.dtype)  # (N, 2F, C, H, W)
+        self._flat = self._buf.reshape(-1)
+        self._agent_stride = 2 * f * c * h * w
+        self._slot_stride = c * h * w
+        self._twin = f * self._slot_stride  # flat distance from a slot to its copy F slots later
+        self._t = f - 1  # slot of the newest frame; the initial stack is all zeros
+        # Flat indices (in copy k % F) of the vehicle pixels written into each slot, cleared on reuse:
+        # far fewer than the pixels of the vehicle channels (see scripts/bench_velocity_map.py).
+        self._written: list[np.ndarray] = [np.zeros(0, dtype=np.int64)] * f
+        if self._road_ch >= 0:
+            self._init_road(road)
+
+    def _init_road(self, road: RoadRaster) -> None:
+        cfg, (_, _, h, w) = self.cfg, self.shape
+        # A one-cell off-road border: clamping a cell index into it is the cheapest bounds check.
+        ny, nx = road.grid.shape
+        grid = np.zeros((ny + 2, nx + 2), dtype=np.uint8)
+        grid[1:-1, 1:-1] = (road.grid != 0) * int(self.high)
+        self._grid = grid.reshape(-1)
+        self._grid_nx, self._grid_ny = nx + 2, ny + 2
+        res = road.resolution
+        self._road_origin = (road.origin[0] - res, road.origin[1] - res)  # of the padded grid
+        self._inv_res = 1.0 / res
+        # Pixel-centre offsets from the ego, in raster cells: along the heading (W,) and to the left (H,).
+        self._u = (((np.arange(w) + 0.5) * self._px_l - self._rear) / res).astype(np.float32)
+        self._v = ((cfg.width_m / 2 - (np.arange(h) + 0.5) * self._px_w) / res).astype(np.float32)
+        n = self.n_agents
+        # Scratch for the per-update gather, allocated once.
+        self._col = np.empty((n, h, w), dtype=np.float32)
+        self._row = np.empty((n, h, w), dtype=np.float32)
+        self._cell = np.empty((n, h, w), dtype=np.intp)
+        self._cell_tmp = np.empty((n, h, w), dtype=np.intp)
+        self._road = np.empty((n, h, w), dtype=np.uint8)
+
+    def reset(self) -> None:
+        """Zero every agent's stack."""
+        self._buf.fill(0)
+        self._written = [np.zeros(0, dtype=np.int64)] * self.shape[0]
+        self._t = self.shape[0] - 1
+
+    def observation(self, agent: int) -> np.ndarray:
+        """(F, C, H, W) stack of `agent`, oldest to newest: a read-only view valid until the next update."""
+        t = self._t
+        view = self._buf[agent, t + 1 : t + 1 + self.shape[0]]
+        view.flags.writeable = False
+        return view
+
+    def observations(self) -> np.ndarray:
+        """(N, F, C, H, W) stacks of all agents: a read-only view valid until the next update."""
+        t = self._t
+        view = self._buf[:, t + 1 : t + 1 + self.shape[0]]
+        view.flags.writeable = False
+        return view
+
+    def update(self, snap: Snapshot, ego_rows: np.ndarray) -> None:
+        """Render one frame per agent from `snap` and push it; ego_rows (N,) are rows in `snap`, -1 absent."""
+        rows = np.asarray(ego_rows, dtype=np.int64).reshape(-1)
+        if rows.shape != (self.n_agents,):
+            raise ValueError(f"ego_rows: expected {self.n_agents} rows, got shape {rows.shape}")
+        f = self.shape[0]
+        self._t = t = (self._t + 1) % f
+        self._clear_slot(t)
+        present = rows >= 0
+        if self._road_ch >= 0:
+            self._render_road(snap, rows, present, t)
+        self._written[t] = self._render_vehicles(snap, rows, present, t)
+
+    def observed(self, snap: Snapshot, ego_rows: np.ndarray) -> np.ndarray:
+        """(N, V) bool: vehicle v's centre lies in agent n's window (never the ego; all False for absent
+        agents)."""
+        rows = np.asarray(ego_rows, dtype=np.int64).reshape(-1)
+        present = rows >= 0
+        u, lat = self._ego_frame(snap, rows)
+        _, _, h, w = self.shape
+        wi = np.floor((u + self._rear) / self._px_l)
+        hi = np.floor((self.cfg.width_m / 2 - lat) / self._px_w)
+        seen = (wi >= 0) & (wi < w) & (hi >= 0) & (hi < h) & present[:, None]
+        seen[np.flatnonzero(present), rows[present]] = False
+        return seen
+
+    # --- internals ---------------------------------------------------------------------------------------
+
+    def _clear_slot(self, t: int) -> None:
+        """Zero the vehicle pixels written F updates ago into slot t and its twin t + F (the road channel
+        is fully overwritten anyway)."""
+        idx = self._written[t]
+        if idx.size:
+            self._flat[idx] = 0
+            self._flat[idx + self._twin] = 0
+
+    def _ego_frame(self, snap: Snapshot, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N, V) position of every vehicle centre in every agent's frame [m]: along the heading, to the left.
+        Absent agents (row -1) get the frame of row 0; callers mask them out."""
+        if len(snap) == 0:
+            empty = np.zeros((len(rows), 0))
+            return empty, empty
+        r = np.maximum(rows, 0)
+        th = snap.heading[r][:, None]
+        cos, sin = np.cos(th), np.sin(th)
+        dx = snap.x[None, :] - snap.x[r][:, None]
+        dy = snap.y[None, :] - snap.y[r][:, None]
+        return dx * cos + dy * sin, -dx * sin + dy * cos
+
+    def _render_road(self, snap: Snapshot, rows: np.ndarray, present: np.ndarray, t: int) -> None:
+        r = np.maximum(rows, 0)
+        # float32 throughout: cell coordinates of a few thousand cells keep ~1e-3 cell precision.
+        th = snap.heading[r].astype(np.float32) if len(snap) else np.zeros(len(r), np.float32)
+        cos, sin = np.cos(th)[:, None, None], np.sin(th)[:, None, None]  # (N, 1, 1)
+        ex = ((snap.x[r] if len(snap) else np.zeros(len(r))) - self._road_origin[0]) * self._inv_res
+        ey = ((snap.y[r] if len(snap) else np.zeros(len(r))) - self._road_origin[1]) * self._inv_res
+        ex = ex.astype(np.float32)[:, None, None]
+        ey = ey.astype(np.float32)[:, None, None]
+        u, v = self._u[None, None, :], self._v[None, :, None]
+        # Pixel centre -> fractional raster cell: col = ex + u cos - v sin, row = ey + u sin + v cos.
+        col, row = self._col, self._row
+        np.add(ex + u * cos, -(v * sin), out=col)  # (N, 1, W) + (N, H, 1) -> (N, H, W)
+        np.add(ey + u * sin, v * cos, out=row)
+        # Clamp into the padded grid: anything outside lands on the off-road border. After clamping at 0
+        # truncation is floor.
+        np.clip(col, 0, self._grid_nx - 1, out=col)
+        np.clip(row, 0, self._grid_ny - 1, out=row)
+        cell, tmp = self._cell, self._cell_tmp
+        np.copyto(cell, row, casting="unsafe")
+        np.copyto(tmp, col, casting="unsafe")
+        cell *= self._grid_nx
+        cell += tmp
+        road = self._road
+        np.take(self._grid, cell, out=road, mode="clip")  # mode clip: no bounds-check buffering
+        if not present.all():
+            road[~present] = 0
+        f, rc = self.shape[0], self._road_ch
+        self._buf[:, t, rc] = road
+        self._buf[:, t + f, rc] = road
+
+    def _render_vehicles(self, snap: Snapshot, rows: np.ndarray, present: np.ndarray, t: int) -> np.ndarray:
+        """Scatter every vehicle footprint into slots t and t + F; returns the flat indices of copy t."""
+        empty = np.zeros(0, dtype=np.int64)
+        if len(snap) == 0 or not present.any():
+            return empty
+        cfg, (_, _, h, w) = self.cfg, self.shape
+        u, lat = self._ego_frame(snap, rows)  # (N, V)
+        # Only (agent, vehicle) pairs whose footprint can reach the window: its bounding circle must.
+        reach = 0.5 * np.hypot(snap.length, snap.width)[None, :]
+        near = (
+            present[:, None]
+            & (u + reach >= -self._rear)
+            & (u - reach <= cfg.length_m - self._rear)
+            & (np.abs(lat) - reach <= cfg.width_m / 2)
+        )
+        ch = np.broadcast_to(self._ch_of_kind[snap.kind.astype(np.int64)], near.shape).copy()  # (N, V)
+        agents = np.flatnonzero(present)
+        ch[agents, rows[agents]] = self._ego_ch  # the ego belongs to ego_merger, never to avs
+        n_idx, v_idx = np.nonzero(near & (ch >= 0))  # (K,) pairs
+        if n_idx.size == 0:
+            return empty
+        ego_v = snap.speed[rows[n_idx]]
+        value = np.clip(0.5 + 0.5 * (snap.speed[v_idx] - ego_v) / cfg.speed_scale, 1 / 255, 1.0)
+        value[v_idx == rows[n_idx]] = 1.0
+        if self.dtype == np.uint8:
+            value = np.round(value * 255)
+        value = value.astype(self.dtype)
+
+        # Footprint samples as fractions of length and width, sized for the largest vehicle in play.
+        length, width = snap.length[v_idx], snap.width[v_idx]
+        nl = int(math.ceil(length.max() / self._spacing)) + 1
+        nw = int(math.ceil(width.max() / self._spacing)) + 1
+        fl = np.repeat(np.linspace(-0.5, 0.5, nl), nw)  # (P,)
+        fw = np.tile(np.linspace(-0.5, 0.5, nw), nl)  # (P,)
+        dth = snap.heading[v_idx] - snap.heading[rows[n_idx]]
+        cd, sd = np.cos(dth)[:, None], np.sin(dth)[:, None]
+        pl = fl[None, :] * length[:, None]  # (K, P) [m] forward in the vehicle's frame
+        pw = fw[None, :] * width[:, None]  # (K, P) [m] left in the vehicle's frame
+        pu = u[n_idx, v_idx][:, None] + pl * cd - pw * sd  # (K, P) in the ego's frame
+        plat = lat[n_idx, v_idx][:, None] + pl * sd + pw * cd
+        wi = np.floor((pu + self._rear) / self._px_l).astype(np.int64)
+        hi = np.floor((cfg.width_m / 2 - plat) / self._px_w).astype(np.int64)
+        inside = (wi >= 0) & (wi < w) & (hi >= 0) & (hi < h)
+        base = n_idx * self._agent_stride + t * self._slot_stride + ch[n_idx, v_idx] * (h * w)  # (K,)
+        idx = (base[:, None] + hi * w + wi)[inside]
+        vals = np.broadcast_to(value[:, None], inside.shape)[inside]
+        self._flat[idx] = vals
+        self._flat[idx + self._twin] = vals
+        return idx
+
