@@ -63,6 +63,7 @@ class MergeEnv(ParallelEnv):
         self.max_steps = max(1, round(config.sim.horizon / config.sim.decision_period))
         self._next_seed = config.sim.seed
         self._tmp = Path(tempfile.mkdtemp(prefix="cosim_"))
+        self.route_file = self._tmp / "episode.rou.xml"  # this episode's vehicles, rewritten at reset
         self.session = SumoSession(Path(config.net.file), config.sim.step_length, config.sim.sumo_args,
                                    config.sim.collision_mingap_factor, self.road.edge_index, kind_of)
         self._snap: Snapshot | None = None
@@ -81,9 +82,8 @@ class MergeEnv(ParallelEnv):
             seed = self._next_seed
         self._next_seed = seed + 1
         self.episode_seed = seed
-        route_file = self._tmp / "episode.rou.xml"
-        write_episode(plan_episode(self.cfg, self.desc, self.road, seed), self.cfg, self.desc, route_file)
-        self.session.load(route_file, seed)
+        write_episode(plan_episode(self.cfg, self.desc, self.road, seed), self.cfg, self.desc, self.route_file)
+        self.session.load(self.route_file, seed)
         self.agents = list(self.possible_agents)
         snap = self.session.snapshot()
         rows = snap.rows_of(self.possible_agents)
@@ -145,6 +145,13 @@ class MergeEnv(ParallelEnv):
             for a in acting:
                 infos[a]["episode"] = summary
         return obs, rew, term, trunc, infos
+
+    @property
+    def snapshot(self) -> Snapshot:
+        """The state of every vehicle after the last reset/step (for baselines, metrics and tools)."""
+        if self._snap is None:
+            raise RuntimeError("no snapshot before reset()")
+        return self._snap
 
     # -- step hooks ---------------------------------------------------------------------------------
     def _act(self, prev: Snapshot, acting: list[str], idx: np.ndarray,

@@ -1,4 +1,4 @@
-"""What the edges of a merge net mean: the highway chain, the on-ramp, the merge edge and its acceleration lanes.
+"""What the edges of a merge net mean: highway chain, on-ramp, merge edge and its acceleration lanes.
 
 Contract: `load_net_description(roadnet, description_file)` returns a validated `NetDescription`. With a file
 it reads that YAML; without one it reads `<net stem>.yaml` beside the net if present, else infers the
@@ -44,7 +44,7 @@ class NetDescription:
     source: str  # the description file's path, or "inferred"
 
     def highway_offsets(self, roadnet: RoadNet) -> dict[str, float]:
-        """Chainage [m] of each highway edge's start: the sum of the edge lengths before it (junctions ignored)."""
+        """Chainage [m] of each highway edge's start: the sum of the lengths before it (junctions ignored)."""
         lengths = [roadnet.edge_length(e) for e in self.highway]
         return dict(zip(self.highway, [0.0, *accumulate(lengths)][:-1], strict=True))
 
@@ -70,7 +70,7 @@ class NetDescription:
 
 
 def load_net_description(roadnet: RoadNet, description_file: str | Path | None = None) -> NetDescription:
-    """The description of `roadnet`: from `description_file`, else `<net stem>.yaml` beside the net, else inferred."""
+    """Describe `roadnet`: from `description_file`, else `<net stem>.yaml` beside the net, else inferred."""
     if description_file is not None:
         path = Path(description_file)
         if not path.is_file():
@@ -167,10 +167,10 @@ def infer_net_description(roadnet: RoadNet) -> NetDescription:
     if len(found) != 1:
         what = "none" if not found else ", ".join(f"ramp {r!r} -> {m!r}" for m, r, _ in found)
         raise NetError(
-            f"net {roadnet.net_file}: cannot infer the net description: looked for a 1-lane ramp edge joining "
-            f"an edge with more lanes that also receives the highway, found {what}. Write a description YAML "
-            f"beside the net ({_stem_yaml(roadnet)}) or set net.description, with keys "
-            f"{', '.join(KEYS)}, e.g.\n{EXAMPLE_YAML}"
+            f"net {roadnet.net_file}: cannot infer the net description: looked for a 1-lane ramp edge "
+            f"joining an edge with more lanes that also receives the highway, found {what}. "
+            f"Write a description YAML beside the net ({_stem_yaml(roadnet)}) or set net.description, "
+            f"with keys {', '.join(KEYS)}, e.g.\n{EXAMPLE_YAML}"
         )
     m, r, others = found[0]
     fed_by_highway = {j for h in others for _, j in roadnet.connections(h, m)}

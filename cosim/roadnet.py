@@ -91,7 +91,7 @@ class RoadNet:
                      for e, j in lane.successors if e == to_edge)
 
     def lane_shapes(self) -> list[tuple[np.ndarray, float]]:
-        """Every lane's centre line `(K, 2)` and width [m], in edge-id then lane-index order (to draw the road)."""
+        """Every lane's centre line `(K, 2)` and width [m], by edge id then lane index (to draw the road)."""
         return [(lane.shape, lane.width) for e in self.edge_ids for lane in self.edges[e].lanes]
 
 

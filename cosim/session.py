@@ -48,7 +48,7 @@ class SumoSession:
         self.step_length = step_length
         self._edge_index = edge_index or {}
         self._kind_of = kind_of or (lambda vid: KIND_AV)
-        self._args = [
+        self.args = [
             "-n", str(self.net_file),
             "--step-length", str(step_length),
             # Crashes are ours to handle: report them, keep both vehicles where they are.
@@ -72,7 +72,7 @@ class SumoSession:
     def load(self, route_file: Path, seed: int) -> None:
         """Start SUMO (first call) or reload it with this episode's routes and seed: a reproducible reset."""
         ls = _libsumo()
-        args = [*self._args, "-r", str(route_file), "--seed", str(seed)]
+        args = [*self.args, "-r", str(route_file), "--seed", str(seed)]
         try:
             if self._started:
                 ls.load(args)

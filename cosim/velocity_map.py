@@ -130,36 +130,42 @@ class VelocityMapper:
         self._t = f - 1  # slot of the newest frame; the initial stack is all zeros
         # Flat indices (in copy k % F) of the vehicle pixels written into each slot, cleared on reuse:
         # far fewer than the pixels of the vehicle channels (see scripts/bench_velocity_map.py).
-        self._written: list[np.ndarray] = [np.zeros(0, dtype=np.int64)] * f
+        self._written: list[np.ndarray] = [np.zeros(0, dtype=np.intp)] * f
+        self._fraction_cache: dict[int, np.ndarray] = {}
         if self._road_ch >= 0:
             self._init_road(road)
 
     def _init_road(self, road: RoadRaster) -> None:
         cfg, (_, _, h, w) = self.cfg, self.shape
-        # A one-cell off-road border: clamping a cell index into it is the cheapest bounds check.
-        ny, nx = road.grid.shape
-        grid = np.zeros((ny + 2, nx + 2), dtype=np.uint8)
-        grid[1:-1, 1:-1] = (road.grid != 0) * int(self.high)
-        self._grid = grid.reshape(-1)
-        self._grid_nx, self._grid_ny = nx + 2, ny + 2
         res = road.resolution
-        self._road_origin = (road.origin[0] - res, road.origin[1] - res)  # of the padded grid
+        # Pad the raster with off-road cells as far as a window reaches from its ego, so a window whose ego
+        # is on the raster never leaves it and the per-pixel bounds check (a clamp) can be skipped.
+        reach = math.hypot(max(self._rear, cfg.length_m - self._rear), cfg.width_m / 2)
+        pad = int(math.ceil(reach / res)) + 1
+        ny, nx = road.grid.shape
+        grid = np.zeros((ny + 2 * pad, nx + 2 * pad), dtype=np.uint8)
+        grid[pad:-pad, pad:-pad] = (road.grid != 0) * int(self.high)
+        self._grid = grid.reshape(-1)
+        self._grid_nx, self._grid_ny = grid.shape[1], grid.shape[0]
+        self._road_origin = (road.origin[0] - pad * res, road.origin[1] - pad * res)  # of the padded grid
         self._inv_res = 1.0 / res
         # Pixel-centre offsets from the ego, in raster cells: along the heading (W,) and to the left (H,).
         self._u = (((np.arange(w) + 0.5) * self._px_l - self._rear) / res).astype(np.float32)
         self._v = ((cfg.width_m / 2 - (np.arange(h) + 0.5) * self._px_w) / res).astype(np.float32)
+        # int32 cell indices are cheaper to make than intp ones; a raster too large for them keeps intp.
+        cell_dtype = np.int32 if grid.size < 2**31 else np.intp
         n = self.n_agents
-        # Scratch for the per-update gather, allocated once.
+        # Scratch for the per-update gather, allocated once: (N, H, W) each.
         self._col = np.empty((n, h, w), dtype=np.float32)
         self._row = np.empty((n, h, w), dtype=np.float32)
-        self._cell = np.empty((n, h, w), dtype=np.intp)
-        self._cell_tmp = np.empty((n, h, w), dtype=np.intp)
+        self._col_i = np.empty((n, h, w), dtype=cell_dtype)
+        self._cell = np.empty((n, h, w), dtype=cell_dtype)
         self._road = np.empty((n, h, w), dtype=np.uint8)
 
     def reset(self) -> None:
         """Zero every agent's stack."""
         self._buf.fill(0)
-        self._written = [np.zeros(0, dtype=np.int64)] * self.shape[0]
+        self._written = [np.zeros(0, dtype=np.intp)] * self.shape[0]
         self._t = self.shape[0] - 1
 
     def observation(self, agent: int) -> np.ndarray:
@@ -226,28 +232,36 @@ class VelocityMapper:
         return dx * cos + dy * sin, -dx * sin + dy * cos
 
     def _render_road(self, snap: Snapshot, rows: np.ndarray, present: np.ndarray, t: int) -> None:
+        """Sample the raster at every pixel centre of every agent into slots t and t + F."""
         r = np.maximum(rows, 0)
-        # float32 throughout: cell coordinates of a few thousand cells keep ~1e-3 cell precision.
-        th = snap.heading[r].astype(np.float32) if len(snap) else np.zeros(len(r), np.float32)
-        cos, sin = np.cos(th)[:, None, None], np.sin(th)[:, None, None]  # (N, 1, 1)
-        ex = ((snap.x[r] if len(snap) else np.zeros(len(r))) - self._road_origin[0]) * self._inv_res
-        ey = ((snap.y[r] if len(snap) else np.zeros(len(r))) - self._road_origin[1]) * self._inv_res
-        ex = ex.astype(np.float32)[:, None, None]
-        ey = ey.astype(np.float32)[:, None, None]
-        u, v = self._u[None, None, :], self._v[None, :, None]
-        # Pixel centre -> fractional raster cell: col = ex + u cos - v sin, row = ey + u sin + v cos.
+        if len(snap):
+            th = snap.heading[r].astype(np.float32)
+            ex = ((snap.x[r] - self._road_origin[0]) * self._inv_res).astype(np.float32)
+            ey = ((snap.y[r] - self._road_origin[1]) * self._inv_res).astype(np.float32)
+        else:  # no vehicles: every agent is absent and its frame zero
+            th = ex = ey = np.zeros(len(r), dtype=np.float32)
+        cos, sin = np.cos(th)[:, None], np.sin(th)[:, None]  # (N, 1)
+        u, v = self._u[None, :], self._v[None, :]  # (1, W), (1, H)
+        # Pixel centre -> fractional raster cell, separably: col = (ex + u cos) + (-v sin) and
+        # row = (ey + u sin) + (v cos), an (N, W) term plus an (N, H) term; float32 keeps 1e-3 cell.
+        col_w, col_h = ex[:, None] + u * cos, -v * sin  # (N, W), (N, H)
+        row_w, row_h = ey[:, None] + u * sin, v * cos
         col, row = self._col, self._row
-        np.add(ex + u * cos, -(v * sin), out=col)  # (N, 1, W) + (N, H, 1) -> (N, H, W)
-        np.add(ey + u * sin, v * cos, out=row)
-        # Clamp into the padded grid: anything outside lands on the off-road border. After clamping at 0
-        # truncation is floor.
-        np.clip(col, 0, self._grid_nx - 1, out=col)
-        np.clip(row, 0, self._grid_ny - 1, out=row)
-        cell, tmp = self._cell, self._cell_tmp
+        np.add(col_w[:, None, :], col_h[:, :, None], out=col)  # (N, H, W)
+        np.add(row_w[:, None, :], row_h[:, :, None], out=row)
+        # The extremes of a separable sum are sums of extremes: clamp (into the off-road padding) only when
+        # some pixel would fall off the raster, e.g. an ego that is itself off it.
+        nx, ny = self._grid_nx, self._grid_ny
+        if col_w.min() + col_h.min() < 0 or col_w.max() + col_h.max() > nx - 1:
+            np.clip(col, 0, nx - 1, out=col)
+        if row_w.min() + row_h.min() < 0 or row_w.max() + row_h.max() > ny - 1:
+            np.clip(row, 0, ny - 1, out=row)
+        # Non-negative, so truncation is floor; flat cell = row * nx + col.
+        cell, col_i = self._cell, self._col_i
         np.copyto(cell, row, casting="unsafe")
-        np.copyto(tmp, col, casting="unsafe")
-        cell *= self._grid_nx
-        cell += tmp
+        np.copyto(col_i, col, casting="unsafe")
+        np.multiply(cell, nx, out=cell)
+        np.add(cell, col_i, out=cell)
         road = self._road
         np.take(self._grid, cell, out=road, mode="clip")  # mode clip: no bounds-check buffering
         if not present.all():
@@ -258,11 +272,11 @@ class VelocityMapper:
 
     def _render_vehicles(self, snap: Snapshot, rows: np.ndarray, present: np.ndarray, t: int) -> np.ndarray:
         """Scatter every vehicle footprint into slots t and t + F; returns the flat indices of copy t."""
-        empty = np.zeros(0, dtype=np.int64)
+        empty = np.zeros(0, dtype=np.intp)
         if len(snap) == 0 or not present.any():
             return empty
         cfg, (_, _, h, w) = self.cfg, self.shape
-        u, lat = self._ego_frame(snap, rows)  # (N, V)
+        u, lat = self._ego_frame(snap, rows)  # (N, V) [m]
         # Only (agent, vehicle) pairs whose footprint can reach the window: its bounding circle must.
         reach = 0.5 * np.hypot(snap.length, snap.width)[None, :]
         near = (
@@ -271,38 +285,51 @@ class VelocityMapper:
             & (u - reach <= cfg.length_m - self._rear)
             & (np.abs(lat) - reach <= cfg.width_m / 2)
         )
-        ch = np.broadcast_to(self._ch_of_kind[snap.kind.astype(np.int64)], near.shape).copy()  # (N, V)
+        ch = np.broadcast_to(self._ch_of_kind[snap.kind.astype(np.intp)], near.shape).copy()  # (N, V)
         agents = np.flatnonzero(present)
         ch[agents, rows[agents]] = self._ego_ch  # the ego belongs to ego_merger, never to avs
         n_idx, v_idx = np.nonzero(near & (ch >= 0))  # (K,) pairs
         if n_idx.size == 0:
             return empty
-        ego_v = snap.speed[rows[n_idx]]
-        value = np.clip(0.5 + 0.5 * (snap.speed[v_idx] - ego_v) / cfg.speed_scale, 1 / 255, 1.0)
-        value[v_idx == rows[n_idx]] = 1.0
+        ego = rows[n_idx]
+        value = np.clip(0.5 + 0.5 * (snap.speed[v_idx] - snap.speed[ego]) / cfg.speed_scale, 1 / 255, 1.0)
+        value[v_idx == ego] = 1.0
         if self.dtype == np.uint8:
             value = np.round(value * 255)
         value = value.astype(self.dtype)
 
-        # Footprint samples as fractions of length and width, sized for the largest vehicle in play.
+        # Footprint samples: an nl x nw grid over the rectangle, as fractions of length and width, sized
+        # for the largest vehicle in play so one array holds every pair.
         length, width = snap.length[v_idx], snap.width[v_idx]
-        nl = int(math.ceil(length.max() / self._spacing)) + 1
-        nw = int(math.ceil(width.max() / self._spacing)) + 1
-        fl = np.repeat(np.linspace(-0.5, 0.5, nl), nw)  # (P,)
-        fw = np.tile(np.linspace(-0.5, 0.5, nw), nl)  # (P,)
-        dth = snap.heading[v_idx] - snap.heading[rows[n_idx]]
-        cd, sd = np.cos(dth)[:, None], np.sin(dth)[:, None]
-        pl = fl[None, :] * length[:, None]  # (K, P) [m] forward in the vehicle's frame
-        pw = fw[None, :] * width[:, None]  # (K, P) [m] left in the vehicle's frame
-        pu = u[n_idx, v_idx][:, None] + pl * cd - pw * sd  # (K, P) in the ego's frame
-        plat = lat[n_idx, v_idx][:, None] + pl * sd + pw * cd
-        wi = np.floor((pu + self._rear) / self._px_l).astype(np.int64)
-        hi = np.floor((cfg.width_m / 2 - plat) / self._px_w).astype(np.int64)
-        inside = (wi >= 0) & (wi < w) & (hi >= 0) & (hi < h)
+        fl = self._fractions(int(math.ceil(length.max() / self._spacing)) + 1)  # (nl,)
+        fw = self._fractions(int(math.ceil(width.max() / self._spacing)) + 1)  # (nw,)
+        dth = snap.heading[v_idx] - snap.heading[ego]
+        cd, sd = np.cos(dth), np.sin(dth)
+        # In fractional pixels: the centre, and the displacement per unit of fl (forward) and fw (left).
+        wc = (u[n_idx, v_idx] + self._rear) / self._px_l  # (K,)
+        hc = (cfg.width_m / 2 - lat[n_idx, v_idx]) / self._px_w
+        wl, hl = cd * length / self._px_l, -sd * length / self._px_w
+        ww, hw = -sd * width / self._px_l, -cd * width / self._px_w
+        # (K, nl, 1) + (K, 1, nw): the sample grid as one broadcast sum per coordinate.
+        wf = (wc[:, None] + wl[:, None] * fl)[:, :, None] + (ww[:, None] * fw)[:, None, :]
+        hf = (hc[:, None] + hl[:, None] * fl)[:, :, None] + (hw[:, None] * fw)[:, None, :]
+        wi = np.floor(wf, out=wf).astype(np.intp)
+        hi = np.floor(hf, out=hf).astype(np.intp)
+        # One unsigned comparison checks both bounds (negatives wrap to huge).
+        inside = (wi.view(np.uintp) < w) & (hi.view(np.uintp) < h)  # (K, nl, nw)
         base = n_idx * self._agent_stride + t * self._slot_stride + ch[n_idx, v_idx] * (h * w)  # (K,)
-        idx = (base[:, None] + hi * w + wi)[inside]
-        vals = np.broadcast_to(value[:, None], inside.shape)[inside]
+        hi *= w
+        hi += wi
+        hi += base[:, None, None]
+        idx = hi[inside]
+        vals = np.broadcast_to(value[:, None, None], inside.shape)[inside]
         self._flat[idx] = vals
         self._flat[idx + self._twin] = vals
         return idx
 
+    def _fractions(self, n: int) -> np.ndarray:
+        """n evenly spaced fractions from -0.5 to 0.5 (cached: the same few sizes recur every step)."""
+        out = self._fraction_cache.get(n)
+        if out is None:
+            out = self._fraction_cache[n] = np.linspace(-0.5, 0.5, n)
+        return out

@@ -1,1 +1,2 @@
-"""SUMO networks of the toolkit: `sumo_net.build` generates the on-ramp merge net; `sumo_net/merge/` holds the default one."""
+"""SUMO networks of the toolkit: `sumo_net.build` generates the on-ramp merge net; `sumo_net/merge/` holds
+the default one."""

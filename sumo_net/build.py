@@ -1,7 +1,8 @@
-"""Builder of the on-ramp merge network: plain XML sources -> SUMO's netconvert -> `.net.xml` + description YAML.
+"""Builder of the on-ramp merge network: plain XML sources -> netconvert -> `.net.xml` + description YAML.
 
-Contract: `build_merge_net(out_dir, ...)` writes `NAME.nod.xml`, `NAME.edg.xml`, `NAME.con.xml`, `NAME.net.xml`
-and `NAME.yaml` (the net description read by `cosim.netdesc`) into `out_dir` and returns the `.net.xml` path.
+Contract: `build_merge_net(out_dir, ...)` writes `NAME.nod.xml`, `NAME.edg.xml`, `NAME.con.xml`,
+`NAME.net.xml` and `NAME.yaml` (the net description read by `cosim.netdesc`) into `out_dir` and returns
+the `.net.xml` path.
 Bad parameters and a failing netconvert raise `cosim.errors.NetError` with a message naming the parameter or
 netconvert's stderr. `main(argv)` is the `cosim build-net` entry point.
 
@@ -99,7 +100,7 @@ def build_merge_net(
 
 
 def run_netconvert(out_dir: Path, name: str) -> Path:
-    """Run netconvert on `NAME.{nod,edg,con}.xml` in `out_dir`; write `NAME.net.xml` there and return its path."""
+    """Run netconvert on `NAME.{nod,edg,con}.xml` in `out_dir`, writing `NAME.net.xml`; return its path."""
     import sumolib  # here, not at module level: importing this module must not need SUMO
 
     if not os.environ.get("SUMO_HOME"):
@@ -175,7 +176,8 @@ def _edges_xml(g: MergeGeometry) -> str:
 
 
 def _connections_xml(g: MergeGeometry) -> str:
-    lines = [f'    <connection from="hw_in" to="hw_merge" fromLane="{i}" toLane="{i + 1}"/>' for i in range(g.lanes)]
+    lines = [f'    <connection from="hw_in" to="hw_merge" fromLane="{i}" toLane="{i + 1}"/>'
+             for i in range(g.lanes)]
     lines.append('    <connection from="ramp" to="hw_merge" fromLane="0" toLane="0"/>')
     # hw_merge lane 0 gets no connection: the acceleration lane ends (lane drop).
     lines += [f'    <connection from="hw_merge" to="hw_out" fromLane="{i + 1}" toLane="{i}"/>'
@@ -184,7 +186,8 @@ def _connections_xml(g: MergeGeometry) -> str:
 
 
 def _xml(root: str, schema: str, lines: list[str]) -> str:
-    head = (f'<?xml version="1.0" encoding="UTF-8"?>\n<{root} xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance" '
+    head = (f'<?xml version="1.0" encoding="UTF-8"?>\n'
+            f'<{root} xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance" '
             f'xsi:noNamespaceSchemaLocation="http://sumo.dlr.de/xsd/{schema}.xsd">\n')
     return head + "\n".join(lines) + f"\n</{root}>\n"
 

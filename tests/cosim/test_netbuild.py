@@ -62,7 +62,8 @@ def test_committed_default_net_matches_fresh_build(tmp_path: Path) -> None:
         for la, lb in zip(a.lanes, b.lanes, strict=True):
             assert np.allclose(la.shape, lb.shape, atol=0.01) and la.speed == lb.speed
     for name in ("nod", "edg", "con"):
-        assert (DEFAULT_NET.parent / f"merge.{name}.xml").read_text() == (tmp_path / f"merge.{name}.xml").read_text()
+        committed_src = (DEFAULT_NET.parent / f"merge.{name}.xml").read_text()
+        assert committed_src == (tmp_path / f"merge.{name}.xml").read_text()
     assert (DEFAULT_NET.parent / "merge.yaml").read_text() == (tmp_path / "merge.yaml").read_text()
 
 

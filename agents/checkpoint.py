@@ -1,0 +1,127 @@
+"""Checkpoints of a training run: atomic writes, validation on load, and policies for evaluation.
+
+Contract:
+- `save_checkpoint(path, payload)` writes via a temp file in the same folder and `os.replace`, so a
+  crash mid-write leaves the previous checkpoint intact.
+- `read_checkpoint(path, expect=...)` returns the payload, or raises `CheckpointError` (a
+  `cosim.errors.CosimError`) naming the file when it is missing, unreadable, not ours, or incompatible
+  with the expected obs shape / dtype / number of agents / policy layout.
+- `load_policy(path)` returns `(policies, meta)`: `policies` maps each agent name to its trained
+  `ActorCritic` (eval mode; the same object for every agent when the policy is shared), whose
+  `act(obs (B, F, C, H, W), greedy)` gives actions; `meta` holds the checkpoint's spec, counters and config.
+Payload layout (format "cosim-ma-a2c", version 1): spec {agents, obs_shape, obs_dtype, n_actions,
+shared_policy, feature_dim, head_hidden}, policy (MultiAgentPolicy.state_dict()), counters, rng
+{python, numpy, torch}, train (TrainConfig as a dict), config (Config.to_dict()).
+"""
+
+from __future__ import annotations
+
+import os
+import random
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from agents.model import ActorCritic
+from cosim.errors import CosimError
+
+FORMAT, VERSION = "cosim-ma-a2c", 1
+CHECKPOINT_NAME = "checkpoint.pt"
+
+
+class CheckpointError(CosimError):
+    """A checkpoint is missing, corrupt, or does not fit the current env / config."""
+
+
+def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save({"format": FORMAT, "version": VERSION, **payload}, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def read_checkpoint(path: Path, expect: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Load and check a checkpoint; `expect` are spec entries that must match (e.g. obs_shape)."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path}: not found")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise CheckpointError(f"checkpoint {path}: corrupt or not a checkpoint ({type(exc).__name__}: "
+                              f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise CheckpointError(f"checkpoint {path}: not a {FORMAT} checkpoint")
+    if payload.get("version") != VERSION:
+        raise CheckpointError(f"checkpoint {path}: version {payload.get('version')}, this code reads {VERSION}")
+    for key in ("spec", "policy", "counters", "rng"):
+        if key not in payload:
+            raise CheckpointError(f"checkpoint {path}: incomplete, no {key!r} entry")
+    spec = payload["spec"]
+    for key, want in (expect or {}).items():
+        have = spec.get(key)
+        if _norm(have) != _norm(want):
+            raise CheckpointError(f"checkpoint {path}: incompatible {key}: checkpoint has {have!r}, "
+                                  f"this run needs {want!r}")
+    return payload
+
+
+def _norm(value: Any) -> Any:
+    return [_norm(v) for v in value] if isinstance(value, list | tuple) else value
+
+
+def rng_state() -> dict[str, Any]:
+    """Python, numpy and torch RNG states in types `torch.load(weights_only=True)` accepts."""
+    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    return {"python": random.getstate(), "numpy": [kind, torch.from_numpy(keys.astype(np.int64)), pos,
+                                                   has_gauss, cached], "torch": torch.get_rng_state()}
+
+
+def set_rng_state(state: dict[str, Any]) -> None:
+    kind, keys, pos, has_gauss, cached = state["numpy"]
+    random.setstate(_tuples(state["python"]))
+    np.random.set_state((kind, keys.numpy().astype(np.uint32), pos, has_gauss, cached))
+    torch.set_rng_state(state["torch"])
+
+
+def _tuples(value: Any) -> Any:
+    return tuple(_tuples(v) for v in value) if isinstance(value, list | tuple) else value
+
+
+def build_net(spec: dict[str, Any]) -> ActorCritic:
+    return ActorCritic(tuple(spec["obs_shape"]), spec["n_actions"], feature_dim=spec["feature_dim"],
+                       head_hidden=spec["head_hidden"])
+
+
+def load_policy(path: str | Path, device: str = "cpu") -> tuple[dict[str, ActorCritic], dict[str, Any]]:
+    """Trained policies of a run, one per agent name, and the checkpoint's metadata (see module doc)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / CHECKPOINT_NAME
+    payload = read_checkpoint(path)
+    spec = payload["spec"]
+    try:
+        nets = []
+        for sd in payload["policy"]["nets"]:
+            net = build_net(spec)
+            net.load_state_dict(sd)
+            nets.append(net.to(device).eval())
+    except (KeyError, RuntimeError, ValueError) as exc:
+        raise CheckpointError(f"checkpoint {path}: networks do not match its spec ({exc})") from None
+    agents = list(spec["agents"])
+    if len(nets) != (1 if spec["shared_policy"] else len(agents)):
+        raise CheckpointError(f"checkpoint {path}: {len(nets)} networks for {len(agents)} agents")
+    policies = {a: nets[0 if spec["shared_policy"] else i] for i, a in enumerate(agents)}
+    meta = {"path": str(path), "spec": spec, "counters": payload["counters"],
+            "train": payload.get("train", {}), "config": payload.get("config", {})}
+    return policies, meta

@@ -1,0 +1,113 @@
+"""A tiny stand-in for the cosim merge env with the same spaces and PettingZoo parallel semantics.
+
+Contract: `CueEnv` is a `pettingzoo.ParallelEnv` with agents `av_0..av_{N-1}`, `Box(0, H, (F, C, Hpx, Wpx))`
+observations (read-only views into a buffer that the next step overwrites, like the real env) and
+`Discrete(5)` actions. Each decision every agent sees a cue in channel 0 (left or right half lit) and earns
+1 for answering it with lane-left (0) or lane-right (2) respectively, so the optimal policy is learnable
+from the observation. Accelerate (3) "crashes" the agent: reward -1 and terminated. Agents still running
+at `horizon` steps are truncated. Infos carry `reward_terms` and, on the last step, `episode`.
+`fail_once_file` makes the env raise `SimulationError` once (across processes) at step `fail_at_step`,
+to test worker restarts. `make_fake_env(**kw)` is a picklable factory for the rollout workers.
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+from cosim.errors import SimulationError
+
+_HIGH = {"float32": 1.0, "float16": 1.0, "uint8": 255}
+
+
+class CueEnv(ParallelEnv):
+    metadata = {"name": "cue_v0", "render_modes": []}
+
+    def __init__(self, n_agents: int = 2, obs_shape: tuple[int, int, int, int] = (2, 4, 8, 16),
+                 dtype: str = "float32", horizon: int = 8, fail_once_file: str | None = None,
+                 fail_at_step: int = 3, render_mode: str | None = None) -> None:
+        self.possible_agents = [f"av_{i}" for i in range(n_agents)]
+        self.agents: list[str] = []
+        self.render_mode = render_mode
+        self.horizon = horizon
+        self.fail_once_file = fail_once_file
+        self.fail_at_step = fail_at_step
+        self._high = _HIGH[dtype]
+        self._obs_space = spaces.Box(0, self._high, shape=tuple(obs_shape), dtype=np.dtype(dtype))
+        self._act_space = spaces.Discrete(5)
+        self._buf = np.zeros((n_agents, *obs_shape), dtype=dtype)  # (N, F, C, H, W)
+        self._rng = np.random.default_rng(0)
+        self._cue = np.zeros(n_agents, dtype=np.int64)
+        self._t = 0
+        self._returns = np.zeros(n_agents)
+        self._crashed = False
+
+    def observation_space(self, agent: str) -> spaces.Box:
+        return self._obs_space
+
+    def action_space(self, agent: str) -> spaces.Discrete:
+        return self._act_space
+
+    def _observe(self) -> dict[str, np.ndarray]:
+        self._cue = self._rng.choice([0, 2], size=len(self.possible_agents))
+        half = self._buf.shape[-1] // 2
+        self._buf[...] = 0
+        for i, cue in enumerate(self._cue):
+            cols = slice(0, half) if cue == 0 else slice(half, None)
+            self._buf[i, :, 0, :, cols] = self._high
+        views = {}
+        for a in self.agents:
+            view = self._buf[self.possible_agents.index(a)].view()
+            view.flags.writeable = False
+            views[a] = view
+        return views
+
+    def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        self.agents = list(self.possible_agents)
+        self._t = 0
+        self._returns[:] = 0
+        self._crashed = False
+        return self._observe(), {a: {} for a in self.agents}
+
+    def step(self, actions: dict[str, int]) -> tuple[dict, dict, dict, dict, dict]:
+        self._t += 1
+        if self.fail_once_file and self._t == self.fail_at_step and not Path(self.fail_once_file).exists():
+            Path(self.fail_once_file).touch()
+            raise SimulationError("fake SUMO crash")
+        rewards, terms, truncs, infos = {}, {}, {}, {}
+        for a in self.agents:
+            i = self.possible_agents.index(a)
+            act = int(actions[a])
+            correct = float(act == self._cue[i])
+            crash = act == 3
+            rewards[a] = correct - float(crash)
+            self._returns[i] += rewards[a]
+            self._crashed |= crash
+            terms[a] = crash
+            truncs[a] = not crash and self._t >= self.horizon
+            infos[a] = {"reward_terms": {"speed": correct, "collision": -float(crash)}}
+        acting = list(self.agents)
+        self.agents = [a for a in acting if not (terms[a] or truncs[a])]
+        obs = self._observe()
+        obs.update({a: self._buf[self.possible_agents.index(a)] for a in acting if truncs[a]})
+        if not self.agents:
+            episode = {"crashed": self._crashed, "merged": not self._crashed,
+                       "mean_distance": float(self._returns.mean()), "merger_distance": 0.0, "length": self._t}
+            for a in acting:
+                infos[a]["episode"] = episode
+        return obs, rewards, terms, truncs, infos
+
+    def close(self) -> None:
+        self.agents = []
+
+
+def make_fake_env(**kwargs: Any) -> functools.partial[CueEnv]:
+    """A picklable env factory for `WorkerPool` / `train(env_factory=...)`."""
+    return functools.partial(CueEnv, **kwargs)

@@ -1,0 +1,147 @@
+"""`cosim bench`: our env against a bare libsumo loop, same machine, same scenario, one run.
+
+(a) bare: `simulationStep` x one decision period + one read of every vehicle's state (plain getters, and
+    subscriptions for comparison); (b) env.step with random actions, default preset; (c) the same with the
+    `paper` preset; (d) env.reset vs a bare `libsumo.load`. Prints agent-decisions/s, b/a, c/a, reset ratio,
+    and memory per observation and per stored transition. With `--train`, hands over to the trainer's bench.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cosim.cli import add_config_arguments
+from cosim.config import OBSERVATION_PRESETS, load_config
+from cosim.env import MergeEnv
+
+log = logging.getLogger(__name__)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_config_arguments(parser)
+    parser.add_argument("--episodes", type=int, default=20, help="episodes per measurement")
+    parser.add_argument("--resets", type=int, default=40, help="resets per measurement")
+    parser.add_argument("--train", action="store_true", help="benchmark training instead (agents bench)")
+
+
+def _env_rate(env: MergeEnv, episodes: int) -> tuple[float, float]:
+    """(seconds per env.step, agent-decisions per second) with random actions; resets not timed."""
+    rng = np.random.default_rng(0)
+    n_steps = n_agents = 0
+    dt = 0.0
+    for ep in range(episodes):
+        env.reset(seed=ep)
+        t0 = time.perf_counter()
+        while env.agents:
+            n_agents += len(env.agents)
+            env.step({a: int(rng.integers(5)) for a in env.agents})
+            n_steps += 1
+        dt += time.perf_counter() - t0
+    return dt / n_steps, n_agents / dt
+
+
+def _reset_time(env: MergeEnv, resets: int) -> float:
+    t0 = time.perf_counter()
+    for k in range(resets):
+        env.reset(seed=1000 + k)
+    return (time.perf_counter() - t0) / resets
+
+
+def _bare(args: list[str], steps_per_decision: int, decisions: int, episodes: int,
+          resets: int) -> dict[str, float]:
+    """Seconds per decision of a bare loop over the same episode (same routes, same horizon)."""
+    import libsumo as ls
+
+    ls.start(["sumo", *args])
+    out = {}
+    try:
+        def run(read) -> float:
+            dt = 0.0
+            for _ in range(episodes):
+                ls.load(args)
+                ls.simulationStep()
+                t0 = time.perf_counter()
+                for _ in range(decisions):
+                    for _ in range(steps_per_decision):
+                        ls.simulationStep()
+                    read()
+                dt += time.perf_counter() - t0
+            return dt / (episodes * decisions)
+
+        veh = ls.vehicle
+
+        def getters() -> None:
+            for v in veh.getIDList():
+                veh.getPosition(v), veh.getAngle(v), veh.getSpeed(v), veh.getRoadID(v)
+                veh.getLaneIndex(v), veh.getLanePosition(v), veh.getDistance(v)
+
+        out["getters"] = run(getters)
+        var = ls.constants
+        codes = [var.VAR_POSITION, var.VAR_ANGLE, var.VAR_SPEED, var.VAR_ROAD_ID, var.VAR_LANE_INDEX,
+                 var.VAR_LANEPOSITION, var.VAR_DISTANCE]
+
+        def subscribed() -> None:
+            for v in ls.simulation.getDepartedIDList():
+                veh.subscribe(v, codes)
+            veh.getAllSubscriptionResults()
+
+        out["subscriptions"] = run(subscribed)
+        t0 = time.perf_counter()
+        for _ in range(resets):
+            ls.load(args)
+        out["load"] = (time.perf_counter() - t0) / resets
+    finally:
+        ls.close()
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.train:
+        from agents.bench import run as train_bench
+
+        return train_bench(args)
+    cfg = load_config(args.config, args.overrides)
+    tmp = Path(tempfile.mkdtemp(prefix="cosim_bench_"))
+    try:
+        results = {}
+        for preset in ("default", "paper"):
+            sizes = {f"observation.{k}": v for k, v in OBSERVATION_PRESETS[preset].items()}
+            env = MergeEnv(load_config(cfg, {"observation.preset": preset, **sizes}))
+            try:
+                step_s, rate = _env_rate(env, args.episodes)
+                results[preset] = (step_s, rate, env.mapper.shape, env.mapper.dtype)
+                if preset == "default":
+                    reset_s = _reset_time(env, args.resets)
+                    env.reset(seed=0)
+                    shutil.copy(env.route_file, tmp / "episode.rou.xml")
+                    sumo_args = [*env.session.args, "-r", str(tmp / "episode.rou.xml"), "--seed", "0"]
+                    decisions = env.max_steps
+            finally:
+                env.close()
+        bare = _bare(sumo_args, cfg.steps_per_decision, decisions, args.episodes, args.resets)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    a = min(bare["getters"], bare["subscriptions"])
+    n = cfg.scenario.n_avs
+    print(f"scenario: {cfg.net.file}, {n} AVs + {cfg.scenario.n_hvs} HVs, {cfg.steps_per_decision} SUMO steps"
+          f" per decision, {args.episodes} episodes of {decisions} decisions")
+    print(f"(a) bare libsumo, getters      : {bare['getters'] * 1e3:7.3f} ms/decision")
+    print(f"(a) bare libsumo, subscriptions: {bare['subscriptions'] * 1e3:7.3f} ms/decision")
+    for tag, preset in (("b", "default"), ("c", "paper")):
+        step_s, rate, shape, dtype = results[preset]
+        obs_bytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
+        print(f"({tag}) env.step, {preset:7s} {shape}: {step_s * 1e3:7.3f} ms/decision, "
+              f"{rate:8.0f} agent-decisions/s, {tag}/a = {step_s / a:5.2f}")
+        print(f"    memory: {obs_bytes / 1024:8.1f} KiB per observation ({dtype}), "
+              f"{2 * obs_bytes / 1024:8.1f} KiB per stored transition (s, s'), "
+              f"{obs_bytes / shape[0] / 1024:6.1f} KiB if only the newest frame is stored")
+    print(f"(d) reset: env {reset_s * 1e3:6.2f} ms vs bare libsumo.load {bare['load'] * 1e3:6.2f} ms, "
+          f"ratio {reset_s / bare['load']:4.2f}")
+    return 0

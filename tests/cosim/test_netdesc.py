@@ -1,0 +1,114 @@
+"""Net descriptions: loading, inference, chainage helpers, and every validation error."""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+
+from cosim.errors import NetError
+from cosim.netdesc import NetDescription, infer_net_description, load_net_description
+from cosim.roadnet import RoadNet, load_roadnet
+from sumo_net.build import build_merge_net, run_netconvert
+
+GOOD = "highway: [hw_in, hw_merge, hw_out]\nramp: [ramp]\nmerge_edge: hw_merge\naccel_lanes: [0]\n"
+
+
+@pytest.fixture(scope="module")
+def net(two_lane_net: Path) -> RoadNet:
+    return load_roadnet(two_lane_net)
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "desc.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_loads_the_yaml_beside_the_net(net: RoadNet, two_lane_net: Path) -> None:
+    desc = load_net_description(net, None)
+    assert desc == NetDescription(("hw_in", "hw_merge", "hw_out"), ("ramp",), "hw_merge", (0,),
+                                  str(two_lane_net.with_name("merge.yaml")))
+
+
+@pytest.mark.parametrize("lanes", [1, 2, 3])
+def test_inference_matches_the_builders_yaml(tmp_path: Path, lanes: int) -> None:
+    net_file = build_merge_net(tmp_path, lanes=lanes, accel_length=90)
+    from_yaml = load_net_description(load_roadnet(net_file), None)
+    net_file.with_name("merge.yaml").unlink()
+    inferred = load_net_description(load_roadnet(net_file), None)
+    assert inferred.source == "inferred"
+    for key in ("highway", "ramp", "merge_edge", "accel_lanes"):
+        assert getattr(inferred, key) == getattr(from_yaml, key)
+
+
+def test_chainage_helpers(net: RoadNet) -> None:
+    desc = load_net_description(net, None)
+    offsets = desc.highway_offsets(net)
+    assert offsets["hw_in"] == 0.0
+    assert offsets["hw_merge"] == pytest.approx(net.edge_length("hw_in"))
+    assert offsets["hw_out"] == pytest.approx(net.edge_length("hw_in") + net.edge_length("hw_merge"))
+    assert desc.highway_position(net, 0.0) == ("hw_in", 0.0)
+    edge, pos = desc.highway_position(net, offsets["hw_merge"] + 10.0)
+    assert edge == "hw_merge" and pos == pytest.approx(10.0)
+    total = desc.highway_length(net)
+    assert desc.highway_position(net, total) == ("hw_out", pytest.approx(net.edge_length("hw_out")))
+    with pytest.raises(ValueError, match="outside the highway"):
+        desc.highway_position(net, total + 1.0)
+    with pytest.raises(ValueError, match="outside the highway"):
+        desc.highway_position(net, -1.0)
+    assert desc.through_lanes(net, "hw_merge") == (1, 2)
+    assert desc.through_lanes(net, "hw_in") == (0, 1)
+
+
+def test_explicit_file_overrides_the_one_beside_the_net(net: RoadNet, tmp_path: Path) -> None:
+    path = _write(tmp_path, GOOD)
+    assert load_net_description(net, path).source == str(path)
+
+
+def test_missing_description_file(net: RoadNet, tmp_path: Path) -> None:
+    missing = tmp_path / "nope.yaml"
+    with pytest.raises(NetError, match=f"net description {re.escape(str(missing))}: not found"):
+        load_net_description(net, missing)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (GOOD + "extra: 1\n", r"unknown key 'extra'"),
+        (GOOD.replace("ramp: [ramp]\n", ""), r"missing key 'ramp'"),
+        (GOOD.replace("hw_out]", "hw_gone]"),
+         r"edge 'hw_gone' \(key highway\) does not exist in .*merge\.net\.xml; edges are: hw_in, hw_merge"),
+        (GOOD.replace("ramp: [ramp]", "ramp: [onramp]"), r"edge 'onramp' \(key ramp\) does not exist"),
+        (GOOD.replace("accel_lanes: [0]", "accel_lanes: [3]"), r"accel_lanes: lane 3 out of range"),
+        (GOOD.replace("accel_lanes: [0]", "accel_lanes: [x]"), r"accel_lanes: expected a list of lane"),
+        (GOOD.replace("merge_edge: hw_merge", "merge_edge: ramp"), r"merge_edge 'ramp' is not in highway"),
+        (GOOD.replace("[hw_in, hw_merge, hw_out]", "[hw_in, hw_out]").replace("merge_edge: hw_merge",
+                                                                               "merge_edge: hw_in"),
+         r"key highway: edge 'hw_in' has no connection to 'hw_out'"),
+        ("- a\n- b\n", r"expected a mapping with keys"),
+        ("highway: [\n", r"not readable YAML"),
+    ],
+)
+def test_bad_descriptions_name_file_and_key(net: RoadNet, tmp_path: Path, text: str, message: str) -> None:
+    path = _write(tmp_path, text)
+    with pytest.raises(NetError, match=rf"net description {re.escape(str(path))}: (.|\n)*{message}"):
+        load_net_description(net, path)
+
+
+def test_inference_failure_explains_the_yaml(tmp_path: Path, two_lane_net: Path) -> None:
+    # A net without a ramp: the 2-lane build with the ramp's connection removed and rebuilt.
+    for name in ("merge.nod.xml", "merge.edg.xml", "merge.con.xml"):
+        shutil.copy(two_lane_net.with_name(name), tmp_path / name)
+    edg = tmp_path / "merge.edg.xml"
+    edg.write_text("\n".join(line for line in edg.read_text().splitlines() if 'id="ramp"' not in line))
+    con = tmp_path / "merge.con.xml"
+    con.write_text("\n".join(line for line in con.read_text().splitlines() if 'from="ramp"' not in line))
+    net = load_roadnet(run_netconvert(tmp_path, "merge"))
+    msg = r"cannot infer the net description(.|\n)*merge\.yaml(.|\n)*accel_lanes:"
+    with pytest.raises(NetError, match=msg):
+        infer_net_description(net)
+    with pytest.raises(NetError, match="cannot infer"):
+        load_net_description(net, None)
