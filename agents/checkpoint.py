@@ -67,13 +67,18 @@ def read_checkpoint(path: Path, expect: dict[str, Any] | None = None) -> dict[st
     for key in ("spec", "policy", "counters", "rng"):
         if key not in payload:
             raise CheckpointError(f"checkpoint {path}: incomplete, no {key!r} entry")
+    check_spec(payload, expect or {}, path)
+    return payload
+
+
+def check_spec(payload: dict[str, Any], expect: dict[str, Any], path: Path) -> None:
+    """Raise `CheckpointError` naming `path` unless the payload's spec matches every `expect` entry."""
     spec = payload["spec"]
-    for key, want in (expect or {}).items():
+    for key, want in expect.items():
         have = spec.get(key)
         if _norm(have) != _norm(want):
             raise CheckpointError(f"checkpoint {path}: incompatible {key}: checkpoint has {have!r}, "
                                   f"this run needs {want!r}")
-    return payload
 
 
 def _norm(value: Any) -> Any:

@@ -112,3 +112,21 @@ def check_device(device: str, where: str) -> None:
     kind, _, index = device.partition(":")
     if kind not in ("cpu", "cuda") or (index and (kind != "cuda" or not index.isdigit())):
         raise ConfigError(f"{where}: expected cpu, cuda or cuda:N, got {device!r}")
+
+
+def config_to_dict(cfg: Config) -> dict[str, Any]:
+    """`cfg.to_dict()`'s plain-dict form, built without deep-copying: read-only mapping sections
+    (`types.MappingProxyType`, as `load_config` makes `train:`) cannot be deep-copied by `dataclasses.asdict`."""
+    out = _plain(cfg)
+    out.pop("source", None)
+    return out
+
+
+def _plain(value: Any) -> Any:
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    return value

@@ -25,7 +25,7 @@ import numpy as np
 from pettingzoo import ParallelEnv
 
 from cosim.config import Config, load_config
-from cosim.control import N_ACTIONS, Action, decide
+from cosim.control import N_ACTIONS, decide
 from cosim.episode import MergeZone, merge_status
 from cosim.netdesc import load_net_description
 from cosim.reward import svo_rewards, utility_terms, weighted_utility
@@ -69,11 +69,11 @@ class MergeEnv(ParallelEnv):
         self._snap: Snapshot | None = None
 
     # -- PettingZoo API -----------------------------------------------------------------------------
-    @functools.lru_cache(maxsize=None)  # noqa: B019 - spaces must be the same object per agent
+    @functools.cache  # noqa: B019 - spaces must be the same object per agent
     def observation_space(self, agent: str) -> gymnasium.spaces.Box:
         return self._obs_space
 
-    @functools.lru_cache(maxsize=None)  # noqa: B019
+    @functools.cache  # noqa: B019
     def action_space(self, agent: str) -> gymnasium.spaces.Discrete:
         return self._act_space
 

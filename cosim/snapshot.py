@@ -27,7 +27,7 @@ class Snapshot:
     speed: np.ndarray  # (V,) float64 [m/s]
     edge: np.ndarray  # (V,) int32 index into RoadNet.edge_ids; -1 on a junction-internal edge
     lane: np.ndarray  # (V,) int32 lane index on that edge (0 = rightmost)
-    lane_pos: np.ndarray  # (V,) float64 [m] from the start of the lane
+    lane_pos: np.ndarray  # (V,) float64 [m] front bumper from the start of the lane (SUMO convention)
     distance: np.ndarray  # (V,) float64 [m] odometer since insertion
     length: np.ndarray  # (V,) float64 [m]
     width: np.ndarray  # (V,) float64 [m]

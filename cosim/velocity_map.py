@@ -131,7 +131,7 @@ class VelocityMapper:
         # Flat indices (in copy k % F) of the vehicle pixels written into each slot, cleared on reuse:
         # far fewer than the pixels of the vehicle channels (see scripts/bench_velocity_map.py).
         self._written: list[np.ndarray] = [np.zeros(0, dtype=np.intp)] * f
-        self._fraction_cache: dict[int, np.ndarray] = {}
+        self._basis_cache: dict[tuple[int, int], np.ndarray] = {}
         if self._road_ch >= 0:
             self._init_road(road)
 
@@ -155,11 +155,13 @@ class VelocityMapper:
         # int32 cell indices are cheaper to make than intp ones; a raster too large for them keeps intp.
         cell_dtype = np.int32 if grid.size < 2**31 else np.intp
         n = self.n_agents
-        # Scratch for the per-update gather, allocated once: (N, H, W) each.
-        self._col = np.empty((n, h, w), dtype=np.float32)
-        self._row = np.empty((n, h, w), dtype=np.float32)
-        self._col_i = np.empty((n, h, w), dtype=cell_dtype)
-        self._cell = np.empty((n, h, w), dtype=cell_dtype)
+        # Scratch for the per-update gather, allocated once. The fractional cell (col, row) of pixel
+        # (h, w) is separable, a(h) + b(w), which a batched GEMM over [a, 1] @ [1, b] evaluates ~3x faster
+        # than a broadcast add: lhs (2N, H, 2), rhs (2N, 2, W); rows 0..N-1 make col, N..2N-1 make row.
+        self._lhs = np.ones((2 * n, h, 2), dtype=np.float32)
+        self._rhs = np.ones((2 * n, 2, w), dtype=np.float32)
+        self._coords = np.empty((2, n, h, w), dtype=np.float32)  # (col | row, N, H, W)
+        self._cells = np.empty((2, n, h, w), dtype=cell_dtype)
         self._road = np.empty((n, h, w), dtype=np.uint8)
 
     def reset(self) -> None:
@@ -242,26 +244,29 @@ class VelocityMapper:
             th = ex = ey = np.zeros(len(r), dtype=np.float32)
         cos, sin = np.cos(th)[:, None], np.sin(th)[:, None]  # (N, 1)
         u, v = self._u[None, :], self._v[None, :]  # (1, W), (1, H)
-        # Pixel centre -> fractional raster cell, separably: col = (ex + u cos) + (-v sin) and
-        # row = (ey + u sin) + (v cos), an (N, W) term plus an (N, H) term; float32 keeps 1e-3 cell.
-        col_w, col_h = ex[:, None] + u * cos, -v * sin  # (N, W), (N, H)
-        row_w, row_h = ey[:, None] + u * sin, v * cos
-        col, row = self._col, self._row
-        np.add(col_w[:, None, :], col_h[:, :, None], out=col)  # (N, H, W)
-        np.add(row_w[:, None, :], row_h[:, :, None], out=row)
-        # The extremes of a separable sum are sums of extremes: clamp (into the off-road padding) only when
-        # some pixel would fall off the raster, e.g. an ego that is itself off it.
-        nx, ny = self._grid_nx, self._grid_ny
-        if col_w.min() + col_h.min() < 0 or col_w.max() + col_h.max() > nx - 1:
-            np.clip(col, 0, nx - 1, out=col)
-        if row_w.min() + row_h.min() < 0 or row_w.max() + row_h.max() > ny - 1:
-            np.clip(row, 0, ny - 1, out=row)
+        # Pixel centre -> fractional raster cell: col = (-v sin) + (ex + u cos), row = (v cos) + (ey + u sin),
+        # an (N, H) term plus an (N, W) term; float32 keeps ~1e-3 cell.
+        n = len(r)
+        lhs, rhs = self._lhs, self._rhs
+        lhs[:n, :, 0] = -v * sin
+        lhs[n:, :, 0] = v * cos
+        rhs[:n, 1, :] = ex[:, None] + u * cos
+        rhs[n:, 1, :] = ey[:, None] + u * sin
+        coords = self._coords
+        np.matmul(lhs, rhs, out=coords.reshape(2 * n, *coords.shape[2:]))
+        # Each term is linear in u or v, so the extremes sit at the window's corners: clamp (into the
+        # off-road padding) only when some pixel would fall off the raster, e.g. its ego is off it.
+        corners = lhs[:, [0, -1], 0][:, :, None] + rhs[:, 1, [0, -1]][:, None, :]  # (2N, 2, 2)
+        for i, size in enumerate((self._grid_nx, self._grid_ny)):
+            c = corners[i * n : (i + 1) * n]
+            if c.min() < 0 or c.max() > size - 1:
+                np.clip(coords[i], 0, size - 1, out=coords[i])
         # Non-negative, so truncation is floor; flat cell = row * nx + col.
-        cell, col_i = self._cell, self._col_i
-        np.copyto(cell, row, casting="unsafe")
-        np.copyto(col_i, col, casting="unsafe")
-        np.multiply(cell, nx, out=cell)
-        np.add(cell, col_i, out=cell)
+        cells = self._cells
+        np.copyto(cells, coords, casting="unsafe")
+        cell = cells[1]
+        np.multiply(cell, self._grid_nx, out=cell)
+        np.add(cell, cells[0], out=cell)
         road = self._road
         np.take(self._grid, cell, out=road, mode="clip")  # mode clip: no bounds-check buffering
         if not present.all():
@@ -301,35 +306,40 @@ class VelocityMapper:
         # Footprint samples: an nl x nw grid over the rectangle, as fractions of length and width, sized
         # for the largest vehicle in play so one array holds every pair.
         length, width = snap.length[v_idx], snap.width[v_idx]
-        fl = self._fractions(int(math.ceil(length.max() / self._spacing)) + 1)  # (nl,)
-        fw = self._fractions(int(math.ceil(width.max() / self._spacing)) + 1)  # (nw,)
+        basis = self._footprint_basis(int(math.ceil(length.max() / self._spacing)) + 1,
+                                      int(math.ceil(width.max() / self._spacing)) + 1)  # (3, P)
         dth = snap.heading[v_idx] - snap.heading[ego]
         cd, sd = np.cos(dth), np.sin(dth)
-        # In fractional pixels: the centre, and the displacement per unit of fl (forward) and fw (left).
-        wc = (u[n_idx, v_idx] + self._rear) / self._px_l  # (K,)
-        hc = (cfg.width_m / 2 - lat[n_idx, v_idx]) / self._px_w
-        wl, hl = cd * length / self._px_l, -sd * length / self._px_w
-        ww, hw = -sd * width / self._px_l, -cd * width / self._px_w
-        # (K, nl, 1) + (K, 1, nw): the sample grid as one broadcast sum per coordinate.
-        wf = (wc[:, None] + wl[:, None] * fl)[:, :, None] + (ww[:, None] * fw)[:, None, :]
-        hf = (hc[:, None] + hl[:, None] * fl)[:, :, None] + (hw[:, None] * fw)[:, None, :]
-        wi = np.floor(wf, out=wf).astype(np.intp)
-        hi = np.floor(hf, out=hf).astype(np.intp)
+        # Per pair, in fractional pixels (w, h): the centre, and the displacement per unit of the length
+        # fraction (forward) and of the width fraction (to the vehicle's left).
+        k = n_idx.size
+        coef = np.empty((2, k, 3))  # (2, K, 3): coordinate w | h, pair, [centre, per length, per width]
+        coef[0, :, 0] = (u[n_idx, v_idx] + self._rear) / self._px_l
+        coef[1, :, 0] = (cfg.width_m / 2 - lat[n_idx, v_idx]) / self._px_w
+        coef[0, :, 1] = cd * length / self._px_l
+        coef[1, :, 1] = -sd * length / self._px_w
+        coef[0, :, 2] = -sd * width / self._px_l
+        coef[1, :, 2] = -cd * width / self._px_w
+        pix = coef.reshape(2 * k, 3) @ basis  # (2K, P): every sample of every pair, one small GEMM
+        pix = np.floor(pix, out=pix).astype(np.intp)
+        wi, hi = pix[:k], pix[k:]  # (K, P) each
         # One unsigned comparison checks both bounds (negatives wrap to huge).
-        inside = (wi.view(np.uintp) < w) & (hi.view(np.uintp) < h)  # (K, nl, nw)
+        inside = (wi.view(np.uintp) < w) & (hi.view(np.uintp) < h)  # (K, P)
         base = n_idx * self._agent_stride + t * self._slot_stride + ch[n_idx, v_idx] * (h * w)  # (K,)
         hi *= w
         hi += wi
-        hi += base[:, None, None]
+        hi += base[:, None]
         idx = hi[inside]
-        vals = np.broadcast_to(value[:, None, None], inside.shape)[inside]
+        vals = np.repeat(value, np.count_nonzero(inside, axis=1))  # row-major mask order = pair order
         self._flat[idx] = vals
         self._flat[idx + self._twin] = vals
         return idx
 
-    def _fractions(self, n: int) -> np.ndarray:
-        """n evenly spaced fractions from -0.5 to 0.5 (cached: the same few sizes recur every step)."""
-        out = self._fraction_cache.get(n)
+    def _footprint_basis(self, nl: int, nw: int) -> np.ndarray:
+        """(3, nl * nw) rows [1, length fraction, width fraction] of an nl x nw grid over [-0.5, 0.5]^2
+        (cached: the same few sizes recur every step)."""
+        out = self._basis_cache.get((nl, nw))
         if out is None:
-            out = self._fraction_cache[n] = np.linspace(-0.5, 0.5, n)
+            fl, fw = np.meshgrid(np.linspace(-0.5, 0.5, nl), np.linspace(-0.5, 0.5, nw), indexing="ij")
+            out = self._basis_cache[(nl, nw)] = np.stack([np.ones(nl * nw), fl.ravel(), fw.ravel()])
         return out

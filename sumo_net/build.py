@@ -4,7 +4,7 @@ Contract: `build_merge_net(out_dir, ...)` writes `NAME.nod.xml`, `NAME.edg.xml`,
 `NAME.net.xml` and `NAME.yaml` (the net description read by `cosim.netdesc`) into `out_dir` and returns
 the `.net.xml` path.
 Bad parameters and a failing netconvert raise `cosim.errors.NetError` with a message naming the parameter or
-netconvert's stderr. `main(argv)` is the `cosim build-net` entry point.
+netconvert's stderr. `add_arguments` / `run` are the `cosim build-net` command.
 
 Geometry (metres, SUMO world frame, no offset normalisation so positions match the node file):
 
@@ -25,7 +25,6 @@ import logging
 import math
 import os
 import subprocess
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -202,10 +201,9 @@ def _description_yaml(g: MergeGeometry) -> str:
     )
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """`cosim build-net`: build a merge net from command-line flags; return the exit status."""
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    """`cosim build-net` flags."""
     d = MergeGeometry()
-    p = argparse.ArgumentParser(prog="cosim build-net", description="Build an on-ramp merge SUMO network.")
     p.add_argument("--lanes", type=int, default=d.lanes, help="through lanes of the highway")
     p.add_argument("--upstream-length", type=float, default=d.upstream_length, help="[m] before the merge")
     p.add_argument("--accel-length", type=float, default=d.accel_length, help="[m] acceleration lane")
@@ -216,7 +214,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--lane-width", type=float, default=d.lane_width, help="[m]")
     p.add_argument("--name", default=d.name, help="file stem of the outputs")
     p.add_argument("--out", type=Path, required=True, help="output folder")
-    args = p.parse_args(argv)
+
+
+def run(args: argparse.Namespace) -> int:
+    """`cosim build-net`: build a merge net from command-line flags; return the exit status."""
     net_file = build_merge_net(
         args.out, lanes=args.lanes, upstream_length=args.upstream_length, accel_length=args.accel_length,
         ramp_length=args.ramp_length, downstream_length=args.downstream_length,
@@ -228,5 +229,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    raise SystemExit(main())
+    import sys
+
+    from cosim.cli import main
+
+    raise SystemExit(main(["build-net", *sys.argv[1:]]))

@@ -7,10 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cosim.cli import main
 from cosim.errors import NetError
 from cosim.netdesc import load_net_description
 from cosim.roadnet import load_roadnet
-from sumo_net.build import build_merge_net, main, run_netconvert
+from sumo_net.build import build_merge_net, run_netconvert
 
 DEFAULT_NET = Path(__file__).resolve().parents[2] / "sumo_net" / "merge" / "merge.net.xml"
 
@@ -69,7 +70,7 @@ def test_committed_default_net_matches_fresh_build(tmp_path: Path) -> None:
 
 def test_main_builds_with_flags(tmp_path: Path) -> None:
     out = tmp_path / "my_merge"
-    assert main(["--lanes", "1", "--accel-length", "60", "--name", "m1", "--out", str(out)]) == 0
+    assert main(["build-net", "--lanes", "1", "--accel-length", "60", "--name", "m1", "--out", str(out)]) == 0
     net = load_roadnet(out / "m1.net.xml")
     assert net.num_lanes("hw_merge") == 2
     assert net.edge_length("hw_merge") == pytest.approx(60, abs=2.0)

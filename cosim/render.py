@@ -1,0 +1,75 @@
+"""`render_mode="rgb_array"`: a top view of the scene above the first live agent's newest VelocityMap frame.
+
+Contract: `render_scene(road, snap, mapper, cfg)` returns an (H, W, 3) uint8 image; it reads only the
+snapshot, the road raster and the mapper's stacks. Colours: road grey, AVs green, HVs blue, merging
+vehicle purple; in the VelocityMap panel brightness is the pixel value.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cosim.config import ObservationConfig
+from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
+from cosim.velocity_map import RoadRaster, VelocityMapper
+
+BACKGROUND = (30, 30, 30)
+ROAD = (110, 110, 110)
+COLOURS = {KIND_AV: (40, 200, 60), KIND_HV: (60, 120, 230), KIND_MERGER: (190, 60, 200)}
+CHANNEL_COLOURS = {"road": ROAD, "avs": COLOURS[KIND_AV], "hvs": COLOURS[KIND_HV], "ego_merger": (230, 80, 80)}
+SCENE_RES = 0.5  # [m/px]
+
+
+def render_scene(road: RoadRaster, snap: Snapshot, mapper: VelocityMapper, cfg: ObservationConfig,
+                 width_px: int = 1024) -> np.ndarray:
+    top = _top_view(road, snap)
+    panel = _velocity_map_panel(mapper, cfg)
+    scale_top = width_px / top.shape[1]
+    scale_vm = width_px / panel.shape[1]
+    top = _resize(top, max(1, round(top.shape[0] * scale_top)), width_px)
+    panel = _resize(panel, max(1, round(panel.shape[0] * scale_vm)), width_px)
+    gap = np.full((4, width_px, 3), 255, dtype=np.uint8)
+    return np.concatenate([top, gap, panel], axis=0)
+
+
+def _top_view(road: RoadRaster, snap: Snapshot) -> np.ndarray:
+    """The whole road at SCENE_RES, vehicles as footprint rectangles, +y up."""
+    step = max(1, round(SCENE_RES / road.resolution))
+    grid = road.grid[::step, ::step] != 0
+    res = road.resolution * step
+    img = np.empty(grid.shape + (3,), dtype=np.uint8)
+    img[:] = BACKGROUND
+    img[grid] = ROAD
+    ny, nx = grid.shape
+    for k in range(len(snap)):
+        c, s = np.cos(snap.heading[k]), np.sin(snap.heading[k])
+        along = np.arange(-snap.length[k] / 2, snap.length[k] / 2 + 1e-9, res / 2)
+        across = np.arange(-snap.width[k] / 2, snap.width[k] / 2 + 1e-9, res / 2)
+        a, b = np.meshgrid(along, across)
+        px = snap.x[k] + a * c - b * s
+        py = snap.y[k] + a * s + b * c
+        j = ((px - road.origin[0]) / res).astype(int)
+        i = ((py - road.origin[1]) / res).astype(int)
+        ok = (i >= 0) & (i < ny) & (j >= 0) & (j < nx)
+        img[i[ok], j[ok]] = COLOURS.get(int(snap.kind[k]), COLOURS[KIND_HV])
+    return img[::-1]
+
+
+def _velocity_map_panel(mapper: VelocityMapper, cfg: ObservationConfig) -> np.ndarray:
+    """The newest frame of agent 0's stack, channels blended by colour."""
+    frame = mapper.observation(0)[-1].astype(np.float32) / mapper.high  # (C, H, W)
+    img = np.zeros(frame.shape[1:] + (3,), dtype=np.float32)
+    img[:] = BACKGROUND
+    for ch, name in enumerate(cfg.channels):
+        on = frame[ch] > 0
+        colour = np.asarray(CHANNEL_COLOURS[name], dtype=np.float32)
+        weight = np.clip(frame[ch], 0.3, 1.0)[..., None] if name != "road" else 1.0
+        img[on] = (colour * weight)[on] if name != "road" else colour
+    return img.astype(np.uint8)
+
+
+def _resize(img: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Nearest-neighbour resize (no imaging dependency)."""
+    rows = np.minimum((np.arange(h) * img.shape[0] / h).astype(int), img.shape[0] - 1)
+    cols = np.minimum((np.arange(w) * img.shape[1] / w).astype(int), img.shape[1] - 1)
+    return img[rows][:, cols]

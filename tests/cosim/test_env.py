@@ -1,0 +1,267 @@
+"""The PettingZoo env on real SUMO: API, determinism, meta-actions, crashes, merges, other nets."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+
+import libsumo
+import numpy as np
+import pytest
+from pettingzoo.test import parallel_api_test
+
+import cosim
+from cosim.control import Action
+from cosim.env import MergeEnv
+from cosim.errors import SimulationError
+from cosim.policies import scripted_policy
+
+SMALL = {"scenario.n_avs": 3, "scenario.n_hvs": 6}
+
+
+@pytest.fixture
+def env() -> Iterator[MergeEnv]:
+    e = cosim.parallel_env("configs/default.yaml", SMALL)
+    yield e
+    e.close()
+
+
+def run_episode(env: MergeEnv, seed: int, actions_of) -> list[tuple]:
+    obs, _ = env.reset(seed=seed)
+    trace = [{a: o.copy() for a, o in obs.items()}]
+    while env.agents:
+        obs, rew, term, trunc, info = env.step(actions_of(env))
+        trace.append(({a: o.copy() for a, o in obs.items()}, rew, term, trunc))
+    return trace
+
+
+def test_parallel_api(env: MergeEnv) -> None:
+    parallel_api_test(env, num_cycles=30)
+
+
+def test_same_seed_same_episode() -> None:
+    def fixed_actions(env: MergeEnv) -> dict[str, int]:
+        step = int(round(env.snapshot.time))
+        return {a: (step + i) % 5 for i, a in enumerate(env.agents)}
+
+    traces = []
+    for _ in range(2):
+        e = cosim.parallel_env("configs/default.yaml", SMALL)
+        try:
+            traces.append(run_episode(e, 7, fixed_actions))
+        finally:
+            e.close()
+    first, second = traces
+    assert len(first) == len(second) > 1
+    for a, b in zip(first[1:], second[1:], strict=True):
+        assert a[1] == b[1] and a[2] == b[2] and a[3] == b[3]
+        for agent in a[0]:
+            np.testing.assert_array_equal(a[0][agent], b[0][agent])
+    # A different seed is a different scene.
+    e = cosim.parallel_env("configs/default.yaml", SMALL)
+    try:
+        other = run_episode(e, 8, fixed_actions)
+    finally:
+        e.close()
+    assert any(not np.array_equal(first[0][a], other[0][a]) for a in first[0])
+
+
+def test_reset_without_seed_counts_up(env: MergeEnv) -> None:
+    _, info = env.reset(seed=3)
+    assert info["av_0"]["seed"] == 3
+    _, info = env.reset()
+    assert info["av_0"]["seed"] == 4
+
+
+def _only(env: MergeEnv, agent: str, action: Action) -> dict[str, int]:
+    return {a: int(action if a == agent else Action.IDLE) for a in env.agents}
+
+
+def _through_rank(env: MergeEnv, agent: str) -> int:
+    """Lane counted from the rightmost through lane: comparable across edges (the merge edge has an
+    acceleration lane at index 0, so raw lane indices shift by one there)."""
+    snap = env.snapshot
+    r = snap.row_of(agent)
+    return sorted(env._usable[int(snap.edge[r])]).index(int(snap.lane[r]))
+
+
+@pytest.mark.parametrize("direction", [Action.LANE_LEFT, Action.LANE_RIGHT])
+def test_lane_changes_move_one_lane(env: MergeEnv, direction: Action) -> None:
+    env.reset(seed=0)
+    delta = 1 if direction == Action.LANE_LEFT else -1
+    n_lanes = len(env._usable[int(env.snapshot.edge[env.snapshot.row_of("av_0")])])
+    agent = next(a for a in env.agents if 0 <= _through_rank(env, a) + delta < n_lanes)
+    rank = _through_rank(env, agent)
+    _, _, _, _, info = env.step(_only(env, agent, direction))
+    assert _through_rank(env, agent) == rank + delta
+    assert not info[agent]["invalid_action"]
+    assert info[agent]["reward_terms"]["lane_change"] < 0
+
+
+def test_lane_change_toward_no_lane_is_flagged_noop(env: MergeEnv) -> None:
+    env.reset(seed=0)
+    snap = env.snapshot
+    # An AV in its edge's leftmost or rightmost through lane (seed 0 has one).
+    for agent in env.agents:
+        n_lanes = len(env._usable[int(snap.edge[snap.row_of(agent)])])
+        rank = _through_rank(env, agent)
+        if rank in (0, n_lanes - 1):
+            break
+    action = Action.LANE_LEFT if rank == n_lanes - 1 else Action.LANE_RIGHT
+    _, _, _, _, info = env.step(_only(env, agent, action))
+    assert _through_rank(env, agent) == rank
+    assert info[agent]["invalid_action"]
+    assert info[agent]["reward_terms"]["invalid_action"] < 0
+    assert info[agent]["reward_terms"]["lane_change"] == 0
+
+
+def test_accelerate_and_decelerate_change_speed(env: MergeEnv) -> None:
+    env.reset(seed=0)
+    v0 = env.snapshot.speed[env.snapshot.row_of("av_1")]
+    env.step(_only(env, "av_1", Action.ACCELERATE))
+    v1 = env.snapshot.speed[env.snapshot.row_of("av_1")]
+    step = env.cfg.av.speed_step
+    assert v1 == pytest.approx(min(v0 + step, env.cfg.av.max_speed), abs=1e-6)
+    env.step(_only(env, "av_1", Action.DECELERATE))
+    env.step(_only(env, "av_1", Action.DECELERATE))
+    v3 = env.snapshot.speed[env.snapshot.row_of("av_1")]
+    assert v3 == pytest.approx(v1 - 2 * step, abs=1e-6)
+    # Idle holds the target speed.
+    env.step(_only(env, "av_1", Action.IDLE))
+    assert env.snapshot.speed[env.snapshot.row_of("av_1")] == pytest.approx(v3, abs=1e-6)
+
+
+def test_acceleration_limit_is_applied(env: MergeEnv) -> None:
+    cfg = env.cfg
+    env.reset(seed=0)
+    v0 = env.snapshot.speed[env.snapshot.row_of("av_2")]
+    # Three accelerate actions at once would ask for +3 steps; in one period the AV gains at most accel * T.
+    env._target[2] = v0 + 3 * cfg.av.speed_step
+    env.step(_only(env, "av_2", Action.IDLE))
+    gained = env.snapshot.speed[env.snapshot.row_of("av_2")] - v0
+    assert gained == pytest.approx(min(cfg.av.accel * cfg.sim.decision_period, 3 * cfg.av.speed_step,
+                                       cfg.av.max_speed - v0), abs=1e-6)
+
+
+def test_provoked_collision_ends_the_right_agents() -> None:
+    env = cosim.parallel_env("configs/default.yaml", {"scenario.n_avs": 3, "scenario.n_hvs": 0})
+    try:
+        env.reset(seed=0)
+        snap = env.snapshot
+        rows = {a: snap.row_of(a) for a in env.agents}
+        front, bystander, rear = sorted(env.agents, key=lambda a: -snap.lane_pos[rows[a]])
+        r = rows[front]
+        edge = env.road.edge_ids[snap.edge[r]]
+        # The bystander steps aside, then the rear AV is put 2 m behind the front one, in its lane
+        # (moveTo takes the front-bumper position; jumping over a vehicle in the lane would count as a crash).
+        aside = next(lane for lane in sorted(env._usable[int(snap.edge[r])]) if lane != snap.lane[r])
+        libsumo.vehicle.moveTo(bystander, f"{edge}_{aside}", snap.lane_pos[rows[bystander]])
+        libsumo.vehicle.moveTo(rear, f"{edge}_{snap.lane[r]}", snap.lane_pos[r] - snap.length[r] - 2.0)
+        ended: dict[str, bool] = {}
+        for _ in range(5):
+            acts = {a: int(Action.IDLE) for a in env.agents}
+            acts.update({a: int(act) for a, act in ((front, Action.DECELERATE), (rear, Action.ACCELERATE))
+                         if a in env.agents})
+            _, _, term, _, info = env.step(acts)
+            ended.update({a: t for a, t in term.items() if t})
+            if front in ended:
+                break
+    finally:
+        env.close()
+    assert ended.get(front) and ended.get(rear)
+    assert bystander in env.agents, "an AV outside the crash keeps driving"
+    assert info[front]["reward_terms"]["collision"] == -env.cfg.reward.weight("collision")
+    assert info[bystander]["reward_terms"]["collision"] == 0
+
+
+def test_merge_is_detected() -> None:
+    env = cosim.parallel_env("configs/default.yaml", SMALL)
+    try:
+        env.reset(seed=1)
+        policy = scripted_policy()
+        merged_step = None
+        k = 0
+        while env.agents:
+            _, _, _, _, info = env.step(policy(env))
+            k += 1
+            r = env.snapshot.row_of("merger")
+            on_through = r >= 0 and env.zone.on_through_lane(env.snapshot.edge[r:r + 1],
+                                                             env.snapshot.lane[r:r + 1])[0]
+            if merged_step is None and on_through:
+                merged_step = k
+                assert next(iter(info.values()))["merged"]
+        summary = next(iter(info.values()))["episode"]
+    finally:
+        env.close()
+    assert merged_step is not None
+    assert summary["merged"] and not summary["merge_failed"]
+    assert 0 < summary["time_to_merge"] <= merged_step * env.cfg.sim.decision_period + 0.2
+
+
+def test_stuck_merging_vehicle_ends_the_episode_as_failed() -> None:
+    env = cosim.parallel_env("configs/default.yaml", SMALL)
+    try:
+        env.reset(seed=1)
+        libsumo.vehicle.setLaneChangeMode("merger", 0)  # it never leaves the acceleration lane
+        while env.agents:
+            _, _, term, trunc, info = env.step({a: int(Action.IDLE) for a in env.agents})
+        summary = next(iter(info.values()))["episode"]
+    finally:
+        env.close()
+    assert summary["merge_failed"] and not summary["merged"]
+    assert all(term.values()) and not any(trunc.values())
+    assert summary["length"] < env.max_steps
+
+
+def test_time_limit_truncates(env: MergeEnv) -> None:
+    env.reset(seed=2)
+    steps = 0
+    while env.agents:
+        _, _, term, trunc, _ = env.step({a: int(Action.IDLE) for a in env.agents})
+        steps += 1
+    assert steps == env.max_steps
+    assert all(trunc[a] != term[a] for a in trunc)
+
+
+def test_reward_is_the_svo_combination_of_reported_utilities() -> None:
+    for phi in (0.0, math.pi / 4, math.pi / 2):
+        env = cosim.parallel_env("configs/default.yaml", {**SMALL, "reward.phi": phi})
+        try:
+            env.reset(seed=0)
+            _, rew, _, _, info = env.step({a: int(Action.ACCELERATE) for a in env.agents})
+        finally:
+            env.close()
+        for a, r in rew.items():
+            i = info[a]
+            assert r == pytest.approx(math.cos(phi) * i["ego_utility"] + math.sin(phi) * i["social_utility"])
+            assert i["ego_utility"] == pytest.approx(sum(i["reward_terms"].values()))
+            assert i["reward_terms"]["speed"] > 0
+
+
+def test_second_generated_net_runs_unchanged(two_lane_net) -> None:
+    env = cosim.parallel_env("configs/default.yaml", {**SMALL, "net.file": str(two_lane_net)})
+    try:
+        parallel_api_test(env, num_cycles=10)
+        trace = run_episode(env, 0, scripted_policy())
+    finally:
+        env.close()
+    assert len(trace) > 1
+    assert env.desc.accel_lanes == (0,) and env.road.num_lanes("hw_in") == 2
+
+
+def test_second_live_env_in_one_process_is_refused(env: MergeEnv) -> None:
+    with pytest.raises(SimulationError, match="worker processes"):
+        cosim.parallel_env("configs/default.yaml", SMALL)
+    env.close()
+    cosim.parallel_env("configs/default.yaml", SMALL).close()  # fine once the first is closed
+
+
+def test_render_shows_scene_and_velocity_map() -> None:
+    env = cosim.parallel_env("configs/default.yaml", SMALL, render_mode="rgb_array")
+    try:
+        env.reset(seed=0)
+        frame = env.render()
+    finally:
+        env.close()
+    assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
+    assert len(np.unique(frame.reshape(-1, 3), axis=0)) >= 4  # background, road, AVs, HVs at least
