@@ -60,12 +60,12 @@ class CueEnv(ParallelEnv):
         for i, cue in enumerate(self._cue):
             cols = slice(0, half) if cue == 0 else slice(half, None)
             self._buf[i, :, 0, :, cols] = self._high
-        views = {}
-        for a in self.agents:
-            view = self._buf[self.possible_agents.index(a)].view()
-            view.flags.writeable = False
-            views[a] = view
-        return views
+        return {a: self._view(a) for a in self.agents}
+
+    def _view(self, agent: str) -> np.ndarray:
+        view = self._buf[self.possible_agents.index(agent)].view()
+        view.flags.writeable = False
+        return view
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         if seed is not None:
@@ -78,9 +78,13 @@ class CueEnv(ParallelEnv):
 
     def step(self, actions: dict[str, int]) -> tuple[dict, dict, dict, dict, dict]:
         self._t += 1
-        if self.fail_once_file and self._t == self.fail_at_step and not Path(self.fail_once_file).exists():
-            Path(self.fail_once_file).touch()
-            raise SimulationError("fake SUMO crash")
+        if self.fail_once_file and self._t == self.fail_at_step:
+            try:
+                Path(self.fail_once_file).open("x").close()  # exclusive create: one process fails, once
+            except FileExistsError:
+                pass
+            else:
+                raise SimulationError("fake SUMO crash")
         rewards, terms, truncs, infos = {}, {}, {}, {}
         for a in self.agents:
             i = self.possible_agents.index(a)
@@ -96,7 +100,7 @@ class CueEnv(ParallelEnv):
         acting = list(self.agents)
         self.agents = [a for a in acting if not (terms[a] or truncs[a])]
         obs = self._observe()
-        obs.update({a: self._buf[self.possible_agents.index(a)] for a in acting if truncs[a]})
+        obs.update({a: self._view(a) for a in acting if terms[a] or truncs[a]})  # final observations
         if not self.agents:
             episode = {"crashed": self._crashed, "merged": not self._crashed,
                        "mean_distance": float(self._returns.mean()), "merger_distance": 0.0, "length": self._t}

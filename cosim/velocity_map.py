@@ -290,13 +290,15 @@ class VelocityMapper:
             & (u - reach <= cfg.length_m - self._rear)
             & (np.abs(lat) - reach <= cfg.width_m / 2)
         )
-        ch = np.broadcast_to(self._ch_of_kind[snap.kind.astype(np.intp)], near.shape).copy()  # (N, V)
+        kind_ch = self._ch_of_kind[snap.kind]  # (V,) channel of each vehicle seen by another agent
         agents = np.flatnonzero(present)
-        ch[agents, rows[agents]] = self._ego_ch  # the ego belongs to ego_merger, never to avs
-        n_idx, v_idx = np.nonzero(near & (ch >= 0))  # (K,) pairs
+        near &= kind_ch >= 0
+        near[agents, rows[agents]] = self._ego_ch >= 0  # the ego goes to ego_merger, never to avs
+        n_idx, v_idx = np.nonzero(near)  # (K,) pairs
         if n_idx.size == 0:
             return empty
         ego = rows[n_idx]
+        pair_ch = np.where(v_idx == ego, self._ego_ch, kind_ch[v_idx])  # (K,)
         value = np.clip(0.5 + 0.5 * (snap.speed[v_idx] - snap.speed[ego]) / cfg.speed_scale, 1 / 255, 1.0)
         value[v_idx == ego] = 1.0
         if self.dtype == np.uint8:
@@ -325,7 +327,7 @@ class VelocityMapper:
         wi, hi = pix[:k], pix[k:]  # (K, P) each
         # One unsigned comparison checks both bounds (negatives wrap to huge).
         inside = (wi.view(np.uintp) < w) & (hi.view(np.uintp) < h)  # (K, P)
-        base = n_idx * self._agent_stride + t * self._slot_stride + ch[n_idx, v_idx] * (h * w)  # (K,)
+        base = n_idx * self._agent_stride + t * self._slot_stride + pair_ch * (h * w)  # (K,)
         hi *= w
         hi += wi
         hi += base[:, None]

@@ -78,7 +78,8 @@ def main() -> None:
     road = make_road()
     snaps = make_snapshots(args.steps)
     rows = np.arange(N_AGENTS)
-    out = [f"road raster {road.grid.shape} cells at {road.resolution} m; {N_AGENTS} agents, {N_VEHICLES} vehicles"]
+    out = [f"road raster {road.grid.shape} cells at {road.resolution} m; "
+           f"{N_AGENTS} agents, {N_VEHICLES} vehicles"]
     for preset in ("default", "paper"):
         for dtype in ("float32", "uint8"):
             cfg = ObservationConfig(preset=preset, dtype=dtype)
@@ -92,7 +93,8 @@ def main() -> None:
         cfg = ObservationConfig(preset=preset)
         for name, cls in (("indices", VelocityMapper), ("fill(0)", FillMapper)):
             us = time_updates(cls(cfg, road, N_AGENTS), snaps, rows)
-            out.append(f"{preset:8s} {name:8s} update mean {us.mean():7.1f} us, median {np.median(us):7.1f} us")
+            out.append(f"{preset:8s} {name:8s} update mean {us.mean():7.1f} us, "
+                       f"median {np.median(us):7.1f} us")
     print("\n".join(out))  # noqa: T201 - a benchmark's report is its output
 
 

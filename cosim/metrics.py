@@ -1,0 +1,316 @@
+"""Evaluation metrics: per-episode bookkeeping from snapshots, and summaries with confidence intervals (pure).
+
+Contract:
+- `mean_ci(values, confidence)` is the mean with a two-sided Student-t interval over the finite values
+  (NaNs, e.g. the time to merge of an episode without a merge, are left out); with one value the interval
+  is NaN, with none the mean is NaN too. `summarize(rows)` applies it to every metric of `SUMMARY_METRICS`
+  over per-episode rows (dicts, as written to `episodes.csv`).
+- `Chainage.from_net(desc, road)` places every highway and ramp edge on one longitudinal axis [m]: highway
+  edges at their start's distance from the first highway edge's start, ramp edges so that the ramp's end
+  meets the merge edge's start. `Chainage.of(snap)` is each vehicle's front bumper on that axis (NaN on
+  junction-internal and foreign edges).
+- `guide_av(snap)` is the AV nearest (centre to centre) to the merging vehicle, or None.
+- `EpisodeTracker(zone, chainage)` is fed every snapshot of an episode (`observe(snap, actions)`, the
+  reset snapshot first) and gives the episode's row (`row()`): crash (any, and by class), merge success and
+  time to merge, distance [m] and mean speed [m/s] by class (over every vehicle seen), the merging vehicle's
+  distance, the guide AV (nearest the merging vehicle when it merges, else at its last appearance) and the
+  guide's actions. With `record=True` it also keeps per-step trajectories (`trajectory()`) for plots.
+- `crossings(trajectory, s)` counts vehicles whose front crosses chainage `s`, the snapshot-side
+  counterpart of an induction loop count.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from cosim.episode import MergeZone
+from cosim.netdesc import NetDescription
+from cosim.roadnet import RoadNet
+from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
+
+CLASS_NAMES: dict[int, str] = {KIND_AV: "av", KIND_HV: "hv", KIND_MERGER: "merger"}
+
+# Summary label -> (episodes.csv column, scale). Booleans become percentages by the x100 scale.
+SUMMARY_METRICS: dict[str, tuple[str, float]] = {
+    "crash [%]": ("crashed", 100.0),
+    "merge success [%]": ("merged", 100.0),
+    "time to merge [s]": ("time_to_merge", 1.0),
+    "mean distance [m]": ("mean_distance", 1.0),
+    "AV distance [m]": ("av_distance", 1.0),
+    "HV distance [m]": ("hv_distance", 1.0),
+    "merger distance [m]": ("merger_distance", 1.0),
+    "mean speed [m/s]": ("mean_speed", 1.0),
+    "throughput [veh/h]": ("throughput_vph", 1.0),
+    "travel time [s]": ("travel_time", 1.0),
+    "time loss [s]": ("time_loss", 1.0),
+}
+
+
+# -- statistics ----------------------------------------------------------------------------------------
+def _betacf(a: float, b: float, x: float) -> float:
+    """Continued fraction of the regularised incomplete beta function (modified Lentz)."""
+    tiny, qab, qap, qam = 1e-300, a + b, a + 1.0, a - 1.0
+    c, d = 1.0, 1.0 - qab * x / qap
+    d = 1.0 / (d if abs(d) > tiny else tiny)
+    h = d
+    for m in range(1, 300):
+        m2 = 2 * m
+        for aa in (m * (b - m) * x / ((qam + m2) * (a + m2)), -(a + m) * (qab + m) * x / ((a + m2) * (qap + m2))):
+            d = 1.0 + aa * d
+            d = 1.0 / (d if abs(d) > tiny else tiny)
+            c = 1.0 + aa / c
+            c = c if abs(c) > tiny else tiny
+            h *= d * c
+        if abs(d * c - 1.0) < 1e-15:
+            break
+    return h
+
+
+def _betainc(a: float, b: float, x: float) -> float:
+    """Regularised incomplete beta I_x(a, b)."""
+    if x <= 0.0:
+        return 0.0
+    if x >= 1.0:
+        return 1.0
+    front = math.exp(math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log1p(-x))
+    if x < (a + 1.0) / (a + b + 2.0):
+        return front * _betacf(a, b, x) / a
+    return 1.0 - front * _betacf(b, a, 1.0 - x) / b
+
+
+def t_cdf(t: float, df: float) -> float:
+    """Student-t cumulative distribution function."""
+    tail = 0.5 * _betainc(df / 2.0, 0.5, df / (df + t * t))
+    return 1.0 - tail if t > 0 else tail
+
+
+def t_quantile(p: float, df: float) -> float:
+    """Inverse of `t_cdf` by bisection (no scipy needed; accurate to ~1e-10)."""
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"p must be in (0, 1), got {p}")
+    lo, hi = -1e3, 1e3
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if t_cdf(mid, df) < p:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+@dataclass(frozen=True)
+class Interval:
+    mean: float
+    low: float  # NaN with fewer than two values
+    high: float
+    n: int  # finite values used
+
+    def as_dict(self) -> dict[str, float | int]:
+        return {"mean": self.mean, "ci_low": self.low, "ci_high": self.high, "n": self.n}
+
+
+def mean_ci(values: Iterable[float], confidence: float = 0.95) -> Interval:
+    """Mean and two-sided t-interval of the finite values."""
+    x = np.asarray([float(v) for v in values], dtype=np.float64)
+    x = x[np.isfinite(x)]
+    n = int(x.size)
+    if n == 0:
+        return Interval(math.nan, math.nan, math.nan, 0)
+    mean = float(x.mean())
+    if n == 1:
+        return Interval(mean, math.nan, math.nan, 1)
+    half = t_quantile(0.5 + confidence / 2.0, n - 1) * float(x.std(ddof=1)) / math.sqrt(n)
+    return Interval(mean, mean - half, mean + half, n)
+
+
+def _number(value: Any) -> float:
+    """A CSV cell or a Python value as a float: booleans as 0/1, empty or unparsable as NaN."""
+    if isinstance(value, bool | np.bool_):
+        return float(value)
+    if isinstance(value, str):
+        v = value.strip().lower()
+        if v in ("true", "false"):
+            return float(v == "true")
+        try:
+            return float(v) if v else math.nan
+        except ValueError:
+            return math.nan
+    try:
+        return math.nan if value is None else float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95,
+              metrics: Mapping[str, tuple[str, float]] = SUMMARY_METRICS) -> dict[str, dict[str, float | int]]:
+    """Metric label -> {mean, ci_low, ci_high, n} over the episodes; metrics missing from the rows are left out."""
+    out = {}
+    for label, (column, scale) in metrics.items():
+        if not any(column in r for r in rows):
+            continue
+        ci = mean_ci((_number(r.get(column)) * scale for r in rows), confidence)
+        out[label] = ci.as_dict()
+    return out
+
+
+# -- geometry ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Chainage:
+    """Longitudinal position [m] of each edge's start on one axis through the highway and the ramp."""
+
+    offsets: np.ndarray  # (E,) by edge index (RoadNet.edge_ids order); NaN for edges not on the axis
+    merge_start: float  # [m] chainage of the merge edge's start (where the acceleration lane begins)
+    merge_end: float  # [m] ... and end
+    highway_end: float  # [m] end of the last highway edge
+
+    @classmethod
+    def from_net(cls, desc: NetDescription, road: RoadNet) -> Chainage:
+        offsets = np.full(len(road.edge_ids), np.nan)
+        hw = desc.highway_offsets(road)
+        for edge, s in hw.items():
+            offsets[road.edge_index[edge]] = s
+        merge_start = hw[desc.merge_edge]
+        s = merge_start
+        for edge in reversed(desc.ramp):
+            s -= road.edge_length(edge)
+            offsets[road.edge_index[edge]] = s
+        return cls(offsets, merge_start, merge_start + road.edge_length(desc.merge_edge),
+                   desc.highway_length(road))
+
+    def of(self, snap: Snapshot) -> np.ndarray:
+        """(V,) front-bumper chainage [m] (SUMO's lane position is the front bumper's)."""
+        edge = snap.edge
+        known = edge >= 0
+        out = np.full(len(snap), np.nan)
+        out[known] = self.offsets[edge[known]] + snap.lane_pos[known]
+        return out
+
+
+def guide_av(snap: Snapshot) -> str | None:
+    """The AV whose centre is nearest the merging vehicle's, or None without an AV or a merging vehicle."""
+    merger = np.flatnonzero(snap.kind == KIND_MERGER)
+    avs = np.flatnonzero(snap.kind == KIND_AV)
+    if merger.size == 0 or avs.size == 0:
+        return None
+    m = merger[0]
+    d2 = (snap.x[avs] - snap.x[m]) ** 2 + (snap.y[avs] - snap.y[m]) ** 2
+    return snap.ids[int(avs[np.argmin(d2)])]
+
+
+def crossings(trajectory: Mapping[str, np.ndarray], s: float) -> int:
+    """Vehicles whose front crosses chainage `s` (from below) between two recorded steps of `trajectory`.
+
+    Gaps (junction-internal edges, NaN) are bridged by the vehicle's last known chainage."""
+    count = 0
+    vehicle, chain, step = trajectory["vehicle"], trajectory["s"], trajectory["step"]
+    for v in np.unique(vehicle):
+        mine = vehicle == v
+        order = np.argsort(step[mine], kind="stable")
+        path = chain[mine][order]
+        path = path[np.isfinite(path)]
+        count += int(np.any((path[:-1] < s) & (path[1:] >= s)))
+    return count
+
+
+# -- one episode's bookkeeping -------------------------------------------------------------------------
+TRAJECTORY_COLUMNS = ("step", "vehicle", "kind", "s", "x", "y", "heading", "speed", "edge", "lane", "length",
+                      "width", "crashed")
+
+
+class EpisodeTracker:
+    """Feed it each snapshot of one episode (reset first); read the episode's row at the end."""
+
+    def __init__(self, zone: MergeZone, chainage: Chainage, record: bool = False) -> None:
+        self.zone = zone
+        self.chainage = chainage
+        self.record = record
+        self.distance: dict[str, float] = {}  # [m] last odometer reading per vehicle
+        self.speed_sum: dict[str, float] = {}
+        self.speed_n: dict[str, int] = {}
+        self.kind: dict[str, int] = {}
+        self.crashed: set[str] = set()
+        self.actions: dict[str, list[int]] = {}
+        self.merged_at: float | None = None
+        self.guide: str | None = None
+        self.steps = -1  # decision steps after the reset snapshot
+        self.time = 0.0
+        self.times: list[float] = []
+        self._columns: dict[str, list[np.ndarray]] = {c: [] for c in TRAJECTORY_COLUMNS}
+        self._vid_index: dict[str, int] = {}
+
+    def observe(self, snap: Snapshot, actions: Mapping[str, int] | None = None) -> None:
+        """`actions`: what each AV was told in the decision step that led to `snap` (None at reset)."""
+        self.steps += 1
+        self.time = float(snap.time)
+        for agent, a in (actions or {}).items():
+            self.actions.setdefault(agent, []).append(int(a))
+        for vid, k, d, v, c in zip(snap.ids, snap.kind, snap.distance, snap.speed, snap.crashed, strict=True):
+            self.distance[vid] = float(d)
+            self.speed_sum[vid] = self.speed_sum.get(vid, 0.0) + float(v)
+            self.speed_n[vid] = self.speed_n.get(vid, 0) + 1
+            self.kind[vid] = int(k)
+            if c:
+                self.crashed.add(vid)
+        merger = np.flatnonzero(snap.kind == KIND_MERGER)
+        if self.merged_at is None and merger.size:
+            r = int(merger[0])
+            if self.zone.on_through_lane(snap.edge[r:r + 1], snap.lane[r:r + 1])[0] and not snap.crashed[r]:
+                self.merged_at = float(snap.time)
+            # The guide is fixed at the merge; until then it follows the merging vehicle's nearest AV.
+            self.guide = guide_av(snap) or self.guide
+        if self.record:
+            self._record(snap)
+
+    def _record(self, snap: Snapshot) -> None:
+        n = len(snap)
+        self.times.append(float(snap.time))
+        idx = np.array([self._vid_index.setdefault(v, len(self._vid_index)) for v in snap.ids], dtype=np.int32)
+        cols = self._columns
+        cols["step"].append(np.full(n, len(self.times) - 1, dtype=np.int32))
+        cols["vehicle"].append(idx)
+        cols["s"].append(self.chainage.of(snap))
+        for name in ("kind", "x", "y", "heading", "speed", "edge", "lane", "length", "width", "crashed"):
+            cols[name].append(getattr(snap, name))
+
+    def _by_class(self, values: Mapping[str, float], kind: int | None) -> float:
+        picked = [v for vid, v in values.items() if kind is None or self.kind[vid] == kind]
+        return float(np.mean(picked)) if picked else math.nan
+
+    def row(self) -> dict[str, Any]:
+        """The episode's metrics, one flat dict (a row of episodes.csv)."""
+        mean_speed = {v: self.speed_sum[v] / self.speed_n[v] for v in self.speed_sum}
+        crashed_kinds = {self.kind[v] for v in self.crashed}
+        row: dict[str, Any] = {
+            "steps": self.steps,
+            "time": self.time,
+            "crashed": bool(self.crashed),
+            **{f"crash_{name}": k in crashed_kinds for k, name in CLASS_NAMES.items()},
+            "n_crashed": len(self.crashed),
+            "merged": self.merged_at is not None,
+            "time_to_merge": math.nan if self.merged_at is None else self.merged_at,
+            "n_vehicles": len(self.distance),
+            "mean_distance": self._by_class(self.distance, None),
+            "mean_speed": self._by_class(mean_speed, None),
+        }
+        for k, name in CLASS_NAMES.items():
+            row[f"{name}_distance"] = self._by_class(self.distance, k)
+            row[f"{name}_speed"] = self._by_class(mean_speed, k)
+        row["guide_av"] = self.guide or ""
+        row["guide_actions"] = " ".join(str(a) for a in self.actions.get(self.guide or "", []))
+        return row
+
+    def trajectory(self) -> dict[str, np.ndarray]:
+        """Per-step vehicle states, flat over (step, vehicle) rows; `ids[vehicle]` names a row's vehicle."""
+        out = {name: (np.concatenate(parts) if parts else np.zeros(0)) for name, parts in self._columns.items()}
+        out["time"] = np.asarray(self.times)
+        out["ids"] = np.asarray(sorted(self._vid_index, key=self._vid_index.__getitem__), dtype=str)
+        out["merge_time"] = np.asarray(math.nan if self.merged_at is None else self.merged_at)
+        out["guide"] = np.asarray(self.guide or "")
+        out["merge_start"] = np.asarray(self.chainage.merge_start)
+        out["merge_end"] = np.asarray(self.chainage.merge_end)
+        return out

@@ -1,0 +1,117 @@
+"""SUMO's own outputs for traffic-engineering figures: induction loops and tripinfo, written and parsed.
+
+Contract:
+- `detector_site(desc, road, offset)`: induction loops on every lane of the last highway edge, `offset` [m]
+  past its start (clipped into the edge), placed from the net description, never from edge ids in code.
+- `episode_output_args(folder, site)` writes `folder/detectors.add.xml` and returns the SUMO options that
+  make one episode write `folder/tripinfo.xml` (unfinished vehicles included, so a time-limited episode
+  reports every vehicle) and `folder/detectors.xml`. SUMO completes these files only when the simulation
+  is reloaded or closed; parse them after that.
+- `read_episode_outputs(folder, duration)` parses both files into `SumoOutputs`: throughput past the
+  detector [veh/h] = vehicles entering any loop / episode duration, mean travel time and time loss over
+  all trips [s/veh] (an unfinished trip counts up to the episode's end), and each vehicle's driven
+  distance (tripinfo routeLength, which equals SUMO's odometer) for cross-checks. Missing or truncated
+  files raise `SimulationError` naming the file.
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from cosim.errors import SimulationError
+from cosim.netdesc import NetDescription
+from cosim.roadnet import RoadNet
+
+TRIPINFO_FILE = "tripinfo.xml"
+DETECTOR_FILE = "detectors.xml"
+ADDITIONAL_FILE = "detectors.add.xml"
+
+
+@dataclass(frozen=True)
+class DetectorSite:
+    edge: str  # the last highway edge
+    lanes: tuple[str, ...]  # lane ids, one loop each
+    pos: float  # [m] from the edge's start
+    chainage: float  # [m] the same place on the highway axis (cosim.metrics.Chainage)
+
+
+def detector_site(desc: NetDescription, road: RoadNet, offset: float) -> DetectorSite:
+    edge = desc.highway[-1]
+    length = road.edge_length(edge)
+    pos = min(max(offset, 0.0), max(length - 0.5, 0.0))
+    lanes = tuple(lane.id for lane in road.edge(edge).lanes)
+    return DetectorSite(edge, lanes, pos, desc.highway_offsets(road)[edge] + pos)
+
+
+def episode_output_args(folder: Path, site: DetectorSite, period: float = 1e6) -> list[str]:
+    """SUMO options for one episode's outputs in `folder` (created); one aggregation interval by default."""
+    folder.mkdir(parents=True, exist_ok=True)
+    loops = "".join(
+        f'    <inductionLoop id="loop_{i}" lane="{lane}" pos="{site.pos:.2f}" period="{period:g}" '
+        f'file="{DETECTOR_FILE}"/>\n' for i, lane in enumerate(site.lanes))
+    additional = folder / ADDITIONAL_FILE
+    additional.write_text(f"<additional>\n{loops}</additional>\n")
+    return ["--additional-files", str(additional),
+            "--tripinfo-output", str(folder / TRIPINFO_FILE),
+            "--tripinfo-output.write-unfinished", "true"]
+
+
+@dataclass(frozen=True)
+class SumoOutputs:
+    detector_count: int  # vehicles that entered a loop
+    throughput_vph: float  # [veh/h] detector_count over the episode's duration
+    travel_time: float  # [s] mean trip duration (unfinished trips up to the episode's end)
+    time_loss: float  # [s] mean time lost against driving at the desired speed
+    n_trips: int
+    distance: dict[str, float] = field(default_factory=dict)  # [m] routeLength by vehicle id
+
+    def as_row(self) -> dict[str, float | int]:
+        return {"throughput_vph": self.throughput_vph, "detector_count": self.detector_count,
+                "travel_time": self.travel_time, "time_loss": self.time_loss, "n_trips": self.n_trips}
+
+
+def _parse(path: Path) -> ET.Element:
+    if not path.is_file():
+        raise SimulationError(f"SUMO output {path}: not found (SUMO writes it when the simulation is "
+                              f"reloaded or closed)")
+    try:
+        return ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise SimulationError(f"SUMO output {path}: incomplete or not XML ({exc}); SUMO completes it only "
+                              f"at the next reset or close") from None
+
+
+def read_detectors(path: Path) -> int:
+    """Vehicles that entered any loop, summed over loops and intervals."""
+    return sum(int(float(iv.get("nVehEntered", "0"))) for iv in _parse(path).iter("interval"))
+
+
+def read_tripinfo(path: Path) -> list[dict[str, float | str]]:
+    trips = []
+    for t in _parse(path).iter("tripinfo"):
+        trips.append({"id": t.get("id", ""), "duration": float(t.get("duration", "nan")),
+                      "time_loss": float(t.get("timeLoss", "nan")),
+                      "route_length": float(t.get("routeLength", "nan"))})
+    return trips
+
+
+def read_episode_outputs(folder: Path, duration: float) -> SumoOutputs:
+    """Parse one episode's complete output files; `duration` [s] is the episode's simulated time."""
+    count = read_detectors(folder / DETECTOR_FILE)
+    trips = read_tripinfo(folder / TRIPINFO_FILE)
+
+    def mean(key: str) -> float:
+        values = [float(t[key]) for t in trips]
+        return sum(values) / len(values) if values else math.nan
+
+    return SumoOutputs(
+        detector_count=count,
+        throughput_vph=count * 3600.0 / duration if duration > 0 else math.nan,
+        travel_time=mean("duration"),
+        time_loss=mean("time_loss"),
+        n_trips=len(trips),
+        distance={str(t["id"]): float(t["route_length"]) for t in trips},
+    )

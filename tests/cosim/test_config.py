@@ -1,0 +1,72 @@
+"""Config loading: YAML, overrides, presets, and clear errors for bad keys and values."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from cosim.config import OBSERVATION_PRESETS, load_config
+from cosim.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_default_yaml_resolves_net_relative_to_the_config() -> None:
+    cfg = load_config(ROOT / "configs" / "default.yaml")
+    assert Path(cfg.net.file) == ROOT / "sumo_net" / "merge" / "merge.net.xml"
+    assert cfg.steps_per_decision == 10
+    assert cfg.observation.frames == OBSERVATION_PRESETS["default"]["frames"]
+
+
+def test_overrides_dict_and_cli_strings() -> None:
+    a = load_config(ROOT / "configs" / "default.yaml", {"reward.phi": 0.785, "observation.preset": "paper"})
+    b = load_config(ROOT / "configs" / "default.yaml", ["reward.phi=0.785", "observation.preset=paper"])
+    assert a == b
+    assert a.phis() == (0.785,) * a.scenario.n_avs
+    assert (a.observation.frames, a.observation.height_px, a.observation.width_px) == (10, 64, 512)
+
+
+def test_per_agent_phi_and_round_trip() -> None:
+    cfg = load_config(None, {"scenario.n_avs": 2, "reward.phi": [0.0, math.pi / 2]})
+    assert cfg.phis() == (0.0, math.pi / 2)
+    assert load_config(cfg.to_dict()) == cfg
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"reward.phii": 1.0}, "reward.phii: unknown"),
+        ({"scenario.n_avs": -1}, "scenario.n_avs: must be > 0"),
+        ({"scenario.n_hvs": -3}, "scenario.n_hvs: must be >= 0"),
+        ({"scenario.n_avs": 2.5}, "scenario.n_avs: expected an integer"),
+        ({"sim.horizon": "long"}, "sim.horizon: expected a number"),
+        ({"observation.preset": "huge"}, "observation.preset: unknown preset"),
+        ({"observation.channels": ["road", "cars"]}, "observation.channels"),
+        ({"observation.dtype": "int64"}, "observation.dtype"),
+        ({"reward.weights": {"speeed": 1.0}}, "reward.weights.speeed: unknown term"),
+        ({"reward.phi": [0.1, 0.2]}, "reward.phi: a list needs one angle per AV"),
+        ({"reward.phi": 45}, "reward.phi: expected an angle in radians"),
+        ({"scenario.speed_range": [30, 20]}, "scenario.speed_range"),
+        ({"hv.lane_change_model": "LC2025"}, "hv.lane_change_model"),
+        ({"bogus": {"a": 1}}, "config key bogus: unknown"),
+    ],
+)
+def test_bad_values_name_the_key(overrides: dict, message: str) -> None:
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(")):
+        load_config(ROOT / "configs" / "default.yaml", overrides)
+
+
+def test_bad_files(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "nope.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("sim: [unclosed\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_config(bad)
+    bad.write_text("- a\n- b\n")
+    with pytest.raises(ConfigError, match="mapping"):
+        load_config(bad)
+    with pytest.raises(ConfigError, match="KEY=VALUE"):
+        load_config(None, ["reward.phi"])

@@ -1,0 +1,87 @@
+"""The SVO reward on a hand-built scene equals the paper's formula at phi = 0, pi/4, pi/2."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cosim.config import REWARD_TERMS, ObservationConfig, RewardConfig
+from cosim.reward import svo_rewards, utility_terms, weighted_utility
+from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
+from cosim.velocity_map import RoadRaster, VelocityMapper
+
+# Two AVs, two HVs, the merging vehicle. av_0 sees av_1 and hv_0; hv_1 is 300 m away; the merger is
+# out of av_0's window too, but counts anyway (the paper's k in V~ ∪ {M}).
+SCENE = Snapshot.build(
+    ids=["av_0", "av_1", "hv_0", "hv_1", "merger"],
+    kind=[KIND_AV, KIND_AV, KIND_HV, KIND_HV, KIND_MERGER],
+    x=[0.0, 20.0, -15.0, 300.0, 0.0],
+    y=[0.0, 3.2, 0.0, 0.0, -100.0],
+    speed=[20.0, 25.0, 18.0, 30.0, 15.0],
+)
+UTILITY = np.array([0.5, 0.8, 0.4, 0.9, -1.0])
+
+
+def observed() -> np.ndarray:
+    road = RoadRaster(grid=np.ones((10, 10), dtype=bool), origin=(-1000.0, -1000.0), resolution=200.0)
+    mapper = VelocityMapper(ObservationConfig(), road, n_agents=2)
+    return mapper.observed(SCENE, SCENE.rows_of(["av_0", "av_1"]))
+
+
+@pytest.mark.parametrize("phi", [0.0, math.pi / 4, math.pi / 2])
+def test_svo_reward_matches_formula(phi: float) -> None:
+    obs = observed()
+    assert obs[0].tolist() == [False, True, True, False, False]
+    rows = SCENE.rows_of(["av_0", "av_1"])
+    reward, ego, social = svo_rewards(UTILITY, obs, rows, merger_row=4, phis=np.array([phi, phi]))
+    # av_0: own 0.5; others it sees: av_1 0.8 + hv_0 0.4; plus the merger -1.0.
+    expected_0 = math.cos(phi) * 0.5 + math.sin(phi) * (0.8 + 0.4 - 1.0)
+    assert reward[0] == pytest.approx(expected_0)
+    assert ego[0] == 0.5 and social[0] == pytest.approx(0.2)
+    # av_1 computed the same way from its own window.
+    seen = [j for j in range(5) if obs[1, j] or j == 4]
+    assert 1 not in seen
+    expected_1 = math.cos(phi) * 0.8 + math.sin(phi) * UTILITY[seen].sum()
+    assert reward[1] == pytest.approx(expected_1)
+
+
+def test_phi_zero_is_egoistic_and_pi_half_ignores_self() -> None:
+    obs = observed()
+    rows = SCENE.rows_of(["av_0", "av_1"])
+    r0, _, _ = svo_rewards(UTILITY, obs, rows, 4, np.zeros(2))
+    assert r0.tolist() == [0.5, 0.8]
+    u = UTILITY.copy()
+    u[0] = 100.0  # av_0's own utility no longer matters to itself at pi/2
+    r1, _, _ = svo_rewards(u, obs, rows, 4, np.full(2, math.pi / 2))
+    r2, _, _ = svo_rewards(UTILITY, obs, rows, 4, np.full(2, math.pi / 2))
+    assert r1[0] == pytest.approx(r2[0])
+
+
+def test_absent_agent_and_gone_merger() -> None:
+    obs = observed()
+    rows = np.array([0, -1])
+    reward, ego, social = svo_rewards(UTILITY, obs, rows, merger_row=-1, phis=np.full(2, math.pi / 4))
+    assert reward[1] == 0.0 and ego[1] == 0.0 and social[1] == 0.0
+    assert social[0] == pytest.approx(0.8 + 0.4)  # no merger term once it is gone
+
+
+def test_utility_terms_and_weights() -> None:
+    terms = utility_terms(
+        progress=np.array([33.0, 16.5, 0.0]), speed_change=np.array([0.0, -3.0, 1.5]),
+        lane_changed=np.array([True, False, False]), invalid=np.array([False, True, False]),
+        crashed=np.array([False, False, True]), merged_now=np.array([False, False, True]),
+        max_speed=33.0, max_accel=3.0, period=1.0,
+    )
+    assert terms["speed"].tolist() == [1.0, 0.5, 0.0]
+    assert terms["accel"].tolist() == [0.0, -1.0, -0.5]
+    assert terms["lane_change"].tolist() == [-1.0, 0.0, 0.0]
+    assert terms["invalid_action"].tolist() == [0.0, -1.0, 0.0]
+    assert terms["collision"].tolist() == [0.0, 0.0, -1.0]
+    assert terms["merge"].tolist() == [0.0, 0.0, 1.0]
+    cfg = RewardConfig(weights={"speed": 2.0})
+    weighted = weighted_utility(terms, cfg)
+    assert set(weighted) == set(REWARD_TERMS)
+    assert weighted["speed"].tolist() == [2.0, 1.0, 0.0]
+    assert weighted["collision"].tolist() == [0.0, 0.0, -REWARD_TERMS["collision"]]
