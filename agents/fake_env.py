@@ -2,10 +2,10 @@
 
 Contract: `CueEnv` is a `pettingzoo.ParallelEnv` with agents `av_0..av_{N-1}`, `Box(0, H, (F, C, Hpx, Wpx))`
 observations (read-only views into a buffer that the next step overwrites, like the real env) and
-`Discrete(5)` actions. Each decision every agent sees a cue in channel 0 (left or right half lit) and earns
-1 for answering it with lane-left (0) or lane-right (2) respectively, so the optimal policy is learnable
-from the observation. Accelerate (3) "crashes" the agent: reward -1 and terminated. Agents still running
-at `horizon` steps are truncated. Infos carry `reward_terms` and, on the last step, `episode`.
+`Discrete(5)` actions. Each decision every agent sees a cue (left half of channel 0 or right half of
+channel 1 lit) and earns 1 for answering it with lane-left (0) or lane-right (2) respectively, so the
+optimal policy is learnable from the observation. Accelerate (3) "crashes" the agent: reward -1 and
+terminated. Agents still running at `horizon` steps are truncated. Infos carry `reward_terms` and, on the last step, `episode`.
 `fail_once_file` makes the env raise `SimulationError` once (across processes) at step `fail_at_step`,
 to test worker restarts. `make_fake_env(**kw)` is a picklable factory for the rollout workers.
 """
@@ -57,9 +57,11 @@ class CueEnv(ParallelEnv):
         self._cue = self._rng.choice([0, 2], size=len(self.possible_agents))
         half = self._buf.shape[-1] // 2
         self._buf[...] = 0
-        for i, cue in enumerate(self._cue):
-            cols = slice(0, half) if cue == 0 else slice(half, None)
-            self._buf[i, :, 0, :, cols] = self._high
+        for i, cue in enumerate(self._cue):  # left cue: left half of channel 0 lit, right cue: right half of 1
+            if cue == 0:
+                self._buf[i, :, 0, :, :half] = self._high
+            else:
+                self._buf[i, :, 1, :, half:] = self._high
         return {a: self._view(a) for a in self.agents}
 
     def _view(self, agent: str) -> np.ndarray:

@@ -32,8 +32,15 @@ import yaml
 from tqdm import tqdm
 
 from agents.a2c import a2c_loss, gae
-from agents.checkpoint import (CHECKPOINT_NAME, CheckpointError, check_spec, read_checkpoint, rng_state,
-                               save_checkpoint, set_rng_state)
+from agents.checkpoint import (
+    CHECKPOINT_NAME,
+    CheckpointError,
+    check_spec,
+    read_checkpoint,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
 from agents.config import TrainConfig, check_device, config_to_dict, train_config
 from agents.logs import RunLogger
 from agents.multiagent import MultiAgentPolicy

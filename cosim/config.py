@@ -27,6 +27,7 @@ OBSERVATION_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {"frames": 10, "height_px": 64, "width_px": 512, "length_m": 256.0, "width_m": 32.0},
 }
 CHANNELS = ("road", "avs", "hvs", "ego_merger")
+AV_DRIVERS = ("env", "sumo")  # who drives the AVs: the agents through the env, or SUMO's own models
 # Named terms of a vehicle's individual utility and their default weights (see cosim.reward).
 REWARD_TERMS: dict[str, float] = {
     "speed": 1.0,  # progress this decision period / (max speed * period), in [0, 1]
@@ -56,6 +57,11 @@ class SimConfig:
     stuck_speed: float = 0.5  # [m/s] a merging vehicle slower than this near its lane end has failed
     stuck_distance: float = 10.0  # [m] ... and this close to the end of the acceleration lane
     sumo_args: tuple[str, ...] = ()  # extra SUMO command-line options
+    # SUMO's own outputs per episode (tripinfo, induction loops), parsed into env.sumo_outputs[seed].
+    outputs: bool = False
+    output_dir: str | None = None  # folder of the per-episode output folders; None: a temp folder
+    detector_offset: float = 100.0  # [m] induction loops this far past the last highway edge's start
+    av_driver: str = "env"  # env: the agents' actions drive the AVs; sumo: SUMO's models (a baseline)
 
 
 @dataclass(frozen=True)
@@ -163,12 +169,14 @@ class Config:
 
     def to_dict(self) -> dict[str, Any]:
         """A plain dict that `load_config` turns back into an equal config (paths stay resolved)."""
-        out = _plain(dataclasses.asdict(self))
+        out = _plain(self)  # not dataclasses.asdict: it deep-copies, and read-only mappings cannot be copied
         out.pop("source")
         return out
 
 
 def _plain(value: Any) -> Any:
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
     if isinstance(value, Mapping):
         return {k: _plain(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
@@ -334,6 +342,9 @@ def validate(cfg: Config) -> None:
     positive("sim.step_length", sim.step_length)
     positive("sim.decision_period", sim.decision_period)
     positive("sim.horizon", sim.horizon)
+    positive("sim.detector_offset", sim.detector_offset, strict=False)
+    if sim.av_driver not in AV_DRIVERS:
+        raise ConfigError(f"sim.av_driver: expected one of {list(AV_DRIVERS)}, got {sim.av_driver!r}")
     if sim.decision_period < sim.step_length:
         raise ConfigError("sim.decision_period: must be at least sim.step_length")
     if sc.max_gap < sc.min_gap:

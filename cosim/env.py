@@ -8,11 +8,17 @@ end of the acceleration lane; all are truncated at the horizon. On the last step
 carries `"episode"`, the episode's summary. Observations are read-only views valid until the next step.
 
 `step` is a template of small hooks: act -> simulate -> snapshot -> observe -> reward -> end.
+
+With `sim.outputs` each episode writes SUMO's tripinfo and induction-loop files into its own folder;
+SUMO completes them at the next reset or close (or `flush_outputs()`), when they are parsed into
+`env.sumo_outputs[seed]` (`cosim.outputs.SumoOutputs`). With `sim.av_driver: sumo` the agents' actions are
+ignored and SUMO's own models drive the AVs (the all-human baseline).
 """
 
 from __future__ import annotations
 
 import functools
+import logging
 import math
 import shutil
 import tempfile
@@ -27,13 +33,17 @@ from pettingzoo import ParallelEnv
 from cosim.config import Config, load_config
 from cosim.control import N_ACTIONS, decide
 from cosim.episode import MergeZone, merge_status
+from cosim.errors import SimulationError
 from cosim.netdesc import load_net_description
+from cosim.outputs import SumoOutputs, detector_site, episode_output_args, read_episode_outputs
 from cosim.reward import svo_rewards, utility_terms, weighted_utility
 from cosim.roadnet import load_roadnet
 from cosim.scenario import av_id, kind_of, plan_episode, write_episode
 from cosim.session import SumoSession
 from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
 from cosim.velocity_map import VelocityMapper, rasterize_road
+
+log = logging.getLogger(__name__)
 
 
 class MergeEnv(ParallelEnv):
@@ -65,7 +75,11 @@ class MergeEnv(ParallelEnv):
         self._tmp = Path(tempfile.mkdtemp(prefix="cosim_"))
         self.route_file = self._tmp / "episode.rou.xml"  # this episode's vehicles, rewritten at reset
         self.session = SumoSession(Path(config.net.file), config.sim.step_length, config.sim.sumo_args,
-                                   config.sim.collision_mingap_factor, self.road.edge_index, kind_of)
+                                   config.sim.collision_mingap_factor, self.road.edge_index, kind_of,
+                                   drive_avs=config.sim.av_driver == "env")
+        self.detectors = detector_site(self.desc, self.road, config.sim.detector_offset)
+        self.sumo_outputs: dict[int, SumoOutputs] = {}  # episode seed -> its parsed SUMO outputs
+        self._pending_outputs: tuple[int, Path] | None = None  # written, not yet complete
         self._snap: Snapshot | None = None
 
     # -- PettingZoo API -----------------------------------------------------------------------------
@@ -83,7 +97,16 @@ class MergeEnv(ParallelEnv):
         self._next_seed = seed + 1
         self.episode_seed = seed
         write_episode(plan_episode(self.cfg, self.desc, self.road, seed), self.cfg, self.desc, self.route_file)
-        self.session.load(self.route_file, seed)
+        end_time = None if self._snap is None else self._snap.time
+        extra: list[str] = []
+        if self.cfg.sim.outputs:
+            out_root = Path(self.cfg.sim.output_dir) if self.cfg.sim.output_dir else self._tmp / "outputs"
+            folder = out_root / f"episode_{seed}"
+            extra = episode_output_args(folder, self.detectors)
+        self.session.load(self.route_file, seed, extra)
+        self._collect_outputs(end_time)  # the reload completed the previous episode's files
+        if self.cfg.sim.outputs:
+            self._pending_outputs = (seed, folder)
         self.agents = list(self.possible_agents)
         snap = self.session.snapshot()
         rows = snap.rows_of(self.possible_agents)
@@ -161,7 +184,7 @@ class MergeEnv(ParallelEnv):
         lane_changed, invalid = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
         rows = prev.rows_of(acting)
         present = rows >= 0
-        if not present.any():
+        if not present.any() or not self.session.drive_avs:
             return lane_changed, invalid
         idx, rows = idx[present], rows[present]
         acts = np.array([int(actions[a]) for a, p in zip(acting, present, strict=True) if p])
@@ -178,6 +201,8 @@ class MergeEnv(ParallelEnv):
     def _simulate(self, acting: list[str], idx: np.ndarray) -> None:
         av = self.cfg.av
         targets = {a: float(self._target[i]) for a, i in zip(acting, idx, strict=True)}
+        if not self.session.drive_avs:
+            targets = {}
         self.session.advance(self.cfg.steps_per_decision, targets, av.accel, av.decel, av.max_speed)
 
     def _rewards(self, snap: Snapshot, rows: np.ndarray, lane_changed: np.ndarray, invalid: np.ndarray,
@@ -233,8 +258,25 @@ class MergeEnv(ParallelEnv):
 
         return render_scene(self.road_raster, self._snap, self.mapper, self.cfg.observation)
 
+    def flush_outputs(self) -> None:
+        """Complete and parse the last episode's SUMO outputs now (SUMO is restarted at the next reset)."""
+        if self._pending_outputs is not None and self._snap is not None:
+            self.session.end_simulation()
+            self._collect_outputs(self._snap.time)
+
+    def _collect_outputs(self, end_time: float | None) -> None:
+        if self._pending_outputs is None or end_time is None:
+            return
+        seed, folder = self._pending_outputs
+        self._pending_outputs = None
+        self.sumo_outputs[seed] = read_episode_outputs(folder, end_time)
+
     def close(self) -> None:
         self.session.close()
+        try:
+            self._collect_outputs(None if self._snap is None else self._snap.time)
+        except SimulationError as exc:  # closing must not fail on an episode SUMO did not finish writing
+            log.warning("%s", exc)
         shutil.rmtree(self._tmp, ignore_errors=True)
         self._snap = None
 

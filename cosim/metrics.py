@@ -311,6 +311,33 @@ class EpisodeTracker:
         out["ids"] = np.asarray(sorted(self._vid_index, key=self._vid_index.__getitem__), dtype=str)
         out["merge_time"] = np.asarray(math.nan if self.merged_at is None else self.merged_at)
         out["guide"] = np.asarray(self.guide or "")
+        # The guide's action at step k was applied between times[k] and times[k + 1].
+        out["guide_actions"] = np.asarray(self.actions.get(self.guide or "", []), dtype=np.int64)
         out["merge_start"] = np.asarray(self.chainage.merge_start)
         out["merge_end"] = np.asarray(self.chainage.merge_end)
         return out
+
+
+def _cell(stats: Mapping[str, float] | None) -> str:
+    if not stats or not math.isfinite(stats["mean"]):
+        return "-"
+    mean, low, high = stats["mean"], stats["ci_low"], stats["ci_high"]
+    digits = 0 if abs(mean) >= 100 else 1 if abs(mean) >= 10 else 2
+    if not (math.isfinite(low) and math.isfinite(high)):
+        return f"{mean:.{digits}f}"
+    return f"{mean:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
+
+
+def format_table(summaries: Mapping[str, Mapping[str, Mapping[str, float]]], episodes: Mapping[str, int],
+                 markdown: bool = False, confidence: float = 0.95) -> str:
+    """One row per metric, one column per run: 'mean [CI low, CI high]' (plain text or Markdown)."""
+    labels = [label for label in SUMMARY_METRICS if any(label in s for s in summaries.values())]
+    header = [f"metric (mean [{confidence:.0%} CI])", *(f"{run} (n={episodes[run]})" for run in summaries)]
+    rows = [[label, *(_cell(s.get(label)) for s in summaries.values())] for label in labels]
+    if markdown:
+        lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+        lines += ["| " + " | ".join(r) + " |" for r in rows]
+        return "\n".join(lines)
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+    fmt = "  ".join(f"{{:<{w}}}" if i == 0 else f"{{:>{w}}}" for i, w in enumerate(widths))
+    return "\n".join([fmt.format(*header), "  ".join("-" * w for w in widths), *(fmt.format(*r) for r in rows)])

@@ -119,12 +119,16 @@ def _vtype(vid: str, drv: DriverConfig, tau: float, sigma: float) -> str:
 def write_episode(plan: list[Spawn], cfg: Config, desc: NetDescription, path: Path) -> None:
     av = cfg.av
     parts = ["<routes>\n"]
-    # AVs are driven by the env (speed mode 0); their vType only gives size and nominal limits.
-    parts.append(
-        f'  <vType id="av" accel="{av.accel}" decel="{av.decel}" emergencyDecel="{av.decel}"'
-        f' maxSpeed="{av.max_speed}" length="{av.length}" width="{av.width}" speedFactor="1" sigma="0"'
-        f' color="0,200,0"/>\n'
-    )
+    if cfg.sim.av_driver == "sumo":  # the all-human baseline: AVs drive like (average) HVs
+        hv = cfg.hv
+        parts.append(_vtype("av", hv, float(np.mean(hv.tau_range)), float(np.mean(hv.sigma_range))))
+    else:
+        # AVs are driven by the env (speed mode 0); their vType only gives size and nominal limits.
+        parts.append(
+            f'  <vType id="av" accel="{av.accel}" decel="{av.decel}" emergencyDecel="{av.decel}"'
+            f' maxSpeed="{av.max_speed}" length="{av.length}" width="{av.width}" speedFactor="1" sigma="0"'
+            f' color="0,200,0"/>\n'
+        )
     for name, edges in route_ids(desc).items():
         parts.append(f'  <route id="{name}" edges="{" ".join(edges)}"/>\n')
     for sp in plan:

@@ -25,6 +25,11 @@ log = logging.getLogger(__name__)
 _LIVE: dict[int, SumoSession] = {}  # pid -> the live session of that process
 
 
+# Subscribed variables (libsumo.constants), fixed so that the import stays lazy.
+_POS, _ANGLE, _SPEED, _ROAD, _LANE, _LANE_POS, _DIST = 0x42, 0x43, 0x40, 0x50, 0x52, 0x56, 0x84
+_VARS = (_POS, _ANGLE, _SPEED, _ROAD, _LANE, _LANE_POS, _DIST)
+
+
 def _libsumo():
     # Imported on first use, not at module import: no side effects for users who only read configs.
     import libsumo
@@ -35,7 +40,7 @@ def _libsumo():
 class SumoSession:
     def __init__(self, net_file: Path, step_length: float, extra_args: Sequence[str] = (),
                  mingap_factor: float = 0.0, edge_index: dict[str, int] | None = None,
-                 kind_of: Callable[[str], int] | None = None) -> None:
+                 kind_of: Callable[[str], int] | None = None, drive_avs: bool = True) -> None:
         other = _LIVE.get(os.getpid())
         if other is not None:
             raise SimulationError(
@@ -48,6 +53,7 @@ class SumoSession:
         self.step_length = step_length
         self._edge_index = edge_index or {}
         self._kind_of = kind_of or (lambda vid: KIND_AV)
+        self.drive_avs = drive_avs  # False: SUMO's own models drive the AVs (the all-human baseline)
         self.args = [
             "-n", str(self.net_file),
             "--step-length", str(step_length),
@@ -62,17 +68,18 @@ class SumoSession:
             *extra_args,
         ]
         self._started = False
-        self._sizes: dict[str, tuple[float, float]] = {}
+        self._static: dict[str, tuple[int, float, float]] = {}  # vid -> (kind, length, width)
         self._commanded: dict[str, float] = {}
         self._crashed: set[str] = set()  # every vehicle in a collision this episode
         self._crashed_period: set[str] = set()  # ... of which newly in the last `advance`
         self._arrived: set[str] = set()
 
     # -- lifecycle ----------------------------------------------------------------------------------
-    def load(self, route_file: Path, seed: int) -> None:
-        """Start SUMO (first call) or reload it with this episode's routes and seed: a reproducible reset."""
+    def load(self, route_file: Path, seed: int, extra_args: Sequence[str] = ()) -> None:
+        """Start SUMO (first call) or reload it with this episode's routes and seed: a reproducible reset.
+        `extra_args` are this episode's own options (e.g. its output files)."""
         ls = _libsumo()
-        args = [*self.args, "-r", str(route_file), "--seed", str(seed)]
+        args = [*self.args, *extra_args, "-r", str(route_file), "--seed", str(seed)]
         try:
             if self._started:
                 ls.load(args)
@@ -83,7 +90,7 @@ class SumoSession:
             raise SimulationError(f"SUMO failed to start with net {self.net_file}: {exc}") from None
         except ls.FatalTraCIError as exc:
             raise SimulationError(f"SUMO failed to start with net {self.net_file}: {exc}") from None
-        self._sizes.clear()
+        self._static.clear()
         self._commanded.clear()
         self._crashed.clear()
         self._crashed_period.clear()
@@ -92,13 +99,17 @@ class SumoSession:
         for vid in ls.vehicle.getIDList():
             self._on_insert(vid)
 
-    def close(self) -> None:
+    def end_simulation(self) -> None:
+        """Close SUMO (which completes its output files) but keep this process's slot; `load` restarts it."""
         if self._started:
             try:
                 _libsumo().close()
             except Exception as exc:  # closing a crashed SUMO must not hide the original error
                 log.debug("libsumo.close failed: %s", exc)
             self._started = False
+
+    def close(self) -> None:
+        self.end_simulation()
         if _LIVE.get(os.getpid()) is self:
             del _LIVE[os.getpid()]
 
@@ -129,8 +140,9 @@ class SumoSession:
     def _on_insert(self, vid: str) -> None:
         ls = _libsumo()
         vtype = ls.vehicle.getTypeID(vid)
-        self._sizes[vid] = (ls.vehicletype.getLength(vtype), ls.vehicletype.getWidth(vtype))
-        if self._kind_of(vid) == KIND_AV:
+        self._static[vid] = (self._kind_of(vid), ls.vehicletype.getLength(vtype), ls.vehicletype.getWidth(vtype))
+        ls.vehicle.subscribe(vid, _VARS)  # `load` drops subscriptions: every vehicle is (re)subscribed here
+        if self.drive_avs and self._kind_of(vid) == KIND_AV:
             # The env drives AVs: no SUMO lane changing, no safety checks, so AVs can crash.
             ls.vehicle.setLaneChangeMode(vid, 0)
             ls.vehicle.setSpeedMode(vid, 0)
@@ -166,43 +178,35 @@ class SumoSession:
         live = set(ls.vehicle.getIDList())
         for vid in vids:
             if vid in live:
+                ls.vehicle.unsubscribe(vid)  # libsumo would fail the next step on a removed subscription
                 ls.vehicle.remove(vid)
             self._commanded.pop(vid, None)
 
     # -- state --------------------------------------------------------------------------------------
     def snapshot(self) -> Snapshot:
-        """Every vehicle's state, read once with plain getters (in libsumo as fast as subscriptions)."""
+        """Every vehicle's state, read once. Subscribed at insertion and fetched in one call: on this
+        machine 25% faster than plain getters into the same arrays (`cosim bench` compares both)."""
         ls = _libsumo()
-        veh = ls.vehicle
-        ids = tuple(veh.getIDList())
+        res = ls.vehicle.getAllSubscriptionResults()
+        ids = tuple(res)
+        rows = list(res.values())
         n = len(ids)
-        x = np.empty(n)
-        y = np.empty(n)
-        angle = np.empty(n)
-        speed = np.empty(n)
-        edge = np.empty(n, dtype=np.int32)
-        lane = np.empty(n, dtype=np.int32)
-        lane_pos = np.empty(n)
-        dist = np.empty(n)
-        length = np.empty(n)
-        width = np.empty(n)
-        eidx = self._edge_index
-        sizes = self._sizes
-        for i, vid in enumerate(ids):
-            x[i], y[i] = veh.getPosition(vid)
-            angle[i] = veh.getAngle(vid)
-            speed[i] = veh.getSpeed(vid)
-            edge[i] = eidx.get(veh.getRoadID(vid), -1)
-            lane[i] = veh.getLaneIndex(vid)
-            lane_pos[i] = veh.getLanePosition(vid)
-            dist[i] = veh.getDistance(vid)
-            length[i], width[i] = sizes[vid]
+        pos = np.array([r[_POS] for r in rows], dtype=np.float64).reshape(n, 2)
+        angle = np.fromiter((r[_ANGLE] for r in rows), np.float64, n)
+        length = np.fromiter((self._static[v][1] for v in ids), np.float64, n)
         # SUMO: angle in degrees clockwise from north, position at the front bumper.
         heading = np.radians(90.0 - angle)
-        x -= 0.5 * length * np.cos(heading)
-        y -= 0.5 * length * np.sin(heading)
-        crashed = np.fromiter((vid in self._crashed_period for vid in ids), dtype=bool, count=n)
-        kind = np.fromiter((self._kind_of(v) for v in ids), dtype=np.int8, count=n)
-        return Snapshot(time=self.time, ids=ids, kind=kind, x=x, y=y, heading=np.remainder(heading, 2 * math.pi),
-                        speed=speed, edge=edge, lane=lane, lane_pos=lane_pos, distance=dist, length=length,
-                        width=width, crashed=crashed, arrived=frozenset(self._arrived))
+        eidx = self._edge_index
+        return Snapshot(
+            time=ls.simulation.getTime(), ids=ids,
+            kind=np.fromiter((self._static[v][0] for v in ids), np.int8, n),
+            x=pos[:, 0] - 0.5 * length * np.cos(heading), y=pos[:, 1] - 0.5 * length * np.sin(heading),
+            heading=np.remainder(heading, 2 * math.pi),
+            speed=np.fromiter((r[_SPEED] for r in rows), np.float64, n),
+            edge=np.fromiter((eidx.get(r[_ROAD], -1) for r in rows), np.int32, n),
+            lane=np.fromiter((r[_LANE] for r in rows), np.int32, n),
+            lane_pos=np.fromiter((r[_LANE_POS] for r in rows), np.float64, n),
+            distance=np.fromiter((r[_DIST] for r in rows), np.float64, n),
+            length=length, width=np.fromiter((self._static[v][2] for v in ids), np.float64, n),
+            crashed=np.fromiter((v in self._crashed_period for v in ids), bool, n),
+            arrived=frozenset(self._arrived))

@@ -10,10 +10,13 @@ Contract:
   fraction cfg.ego_at from the rear); h runs across it (0 = the ego's left edge, H-1 = its right edge).
 - Channels follow cfg.channels: `road` is 1 on road (nearest raster cell at the pixel centre); `avs`
   (other AVs), `hvs` (human vehicles) and `ego_merger` (the ego, value 1, and the merging vehicle) hold
-  clip(0.5 + 0.5 * (v - v_ego) / speed_scale, 1/255, 1) over each vehicle's rotated footprint, so 0 always
+  clip(0.5 + 0.5 * (v - v_ego) / speed_scale, 1/255, 1) over each vehicle's rotated footprint (a pixel is
+  drawn if a footprint sample, at most half a pixel apart with the edges included, falls in it), so 0 always
   means empty. uint8 stores round(value * 255); float dtypes store the value.
 - An agent whose ego row is -1 (not in the simulation) gets an all-zero frame.
 Nothing here touches libsumo: everything is a function of the snapshot, the config and the raster.
+Cost: an update of 5 agents takes about 0.5 ms at the paper preset, 0.2 ms at the default one
+(scripts/bench_velocity_map.py); the road raster is kept padded by the window's reach (uint8).
 """
 
 from __future__ import annotations

@@ -1,0 +1,164 @@
+"""`cosim compare`: evaluated runs side by side: a table, the paper's figures, one Markdown report.
+
+Contract: `compare(dirs, out_dir, labels)` takes evaluation folders (written by `cosim evaluate`: a
+`summary.json` and `episodes.csv`) or training-run folders holding one in `eval/`, and writes into
+`out_dir`: `bars.png` (crash %, merge %, mean distance with 95% intervals), `merger_distance.png` (the
+merging vehicle's distance, overlaid), `training_curves.png` (when a run folder has the trainer's
+`episodes.csv`), per run `LABEL/` with the time-space diagrams, guide-AV speed profiles and top views of
+its recorded episodes, `summary.json` / `summary.csv` (all runs' metrics) and `report.md` (the table and
+the figures). `plot_run(eval_dir, plots_dir, label)` draws one evaluation's own figures (used by
+`cosim evaluate` too). A folder without an evaluation raises `CosimError`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import logging
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from agents.evaluate import load_trajectory, read_rows, trajectory_files
+from cosim import plots
+from cosim.config import load_config
+from cosim.errors import CosimError
+from cosim.metrics import SUMMARY_METRICS, format_table
+from cosim.roadnet import load_roadnet
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    label: str
+    eval_dir: Path
+    run_dir: Path | None  # the training run, for its training log
+    summary: dict[str, Any]
+
+
+def find_evaluation(path: Path, label: str | None = None) -> Evaluation:
+    """An evaluation folder, or a run folder with one in `eval/`."""
+    path = Path(path)
+    for eval_dir in (path, path / "eval"):
+        if (eval_dir / "summary.json").is_file():
+            summary = json.loads((eval_dir / "summary.json").read_text())
+            run = summary.get("run") or (str(path) if eval_dir != path else None)
+            return Evaluation(label or path.name, eval_dir, None if run is None else Path(run), summary)
+    raise CosimError(f"{path}: no evaluation found (summary.json here or in {path / 'eval'}); run "
+                     f"`cosim evaluate --out {path}` (or `--run {path}`) first")
+
+
+def plot_run(eval_dir: Path, plots_dir: Path, label: str) -> list[Path]:
+    """One evaluation's figures: merger distance histogram, and per recorded episode a time-space diagram
+    with the guide AV's speed profile and top views around the merge."""
+    out = [plots.distance_histogram({label: _column(eval_dir, "merger_distance")},
+                                    plots_dir / "merger_distance.png")]
+    files = trajectory_files(eval_dir)
+    if files:
+        cfg = load_config(eval_dir / "config.yaml")
+        lanes = load_roadnet(cfg.net.file).lane_shapes()
+        for f in files:
+            traj = load_trajectory(f)
+            seed = f.stem.split("_")[1]
+            out.append(plots.time_space(traj, plots_dir / f"timespace_seed_{seed}.png",
+                                        title=f"{label}: episode seed {seed}, guide AV {traj['guide']}"))
+            out.append(plots.top_views(traj, lanes, plots_dir / f"topview_seed_{seed}.png"))
+    return out
+
+
+def _column(eval_dir: Path, name: str) -> list[float]:
+    values = []
+    for r in read_rows(eval_dir / "episodes.csv"):
+        try:
+            values.append(float(r.get(name) or "nan"))
+        except ValueError:
+            values.append(float("nan"))
+    return values
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = None) -> dict[str, Any]:
+    """Write the comparison report into `out_dir`; returns {label: summary}."""
+    if labels is not None and len(labels) != len(dirs):
+        raise CosimError(f"--labels: {len(labels)} labels for {len(dirs)} folders")
+    evals = [find_evaluation(d, None if labels is None else labels[i]) for i, d in enumerate(dirs)]
+    names = [e.label for e in evals]
+    if len(set(names)) != len(names):
+        raise CosimError(f"runs need distinct labels, got {names}; pass --labels")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    metrics = {e.label: e.summary["metrics"] for e in evals}
+    episodes = {e.label: int(e.summary["episodes"]) for e in evals}
+    figures = {"bars": plots.bars(metrics, out_dir / "bars.png"),
+               "merger distance": plots.distance_histogram(
+                   {e.label: _column(e.eval_dir, "merger_distance") for e in evals}, out_dir / "merger_distance.png")}
+    logs = {e.label: e.run_dir / "episodes.csv" for e in evals if e.run_dir is not None}
+    curves = plots.training_curves(logs, out_dir / "training_curves.png") if logs else None
+    if curves is not None:
+        figures["training curves"] = curves
+    per_run: dict[str, list[Path]] = {}
+    for e in tqdm(evals, desc="plots", unit="run", leave=False):
+        per_run[e.label] = plot_run(e.eval_dir, out_dir / e.label, e.label)[1:]
+    _atomic_write(out_dir / "summary.json", json.dumps(
+        {e.label: {**e.summary, "eval_dir": str(e.eval_dir)} for e in evals}, indent=2) + "\n")
+    _atomic_write(out_dir / "summary.csv", _summary_csv(metrics))
+    _atomic_write(out_dir / "report.md", _report(evals, metrics, episodes, figures, per_run, out_dir))
+    return {e.label: e.summary for e in evals}
+
+
+def _summary_csv(metrics: dict[str, dict[str, dict[str, float]]]) -> str:
+    buf = io.StringIO()
+    writer = csv.writer(buf)
+    writer.writerow(["run", "metric", "mean", "ci_low", "ci_high", "n"])
+    for run, ms in metrics.items():
+        for label in SUMMARY_METRICS:
+            if label in ms:
+                s = ms[label]
+                writer.writerow([run, label, s["mean"], s["ci_low"], s["ci_high"], s["n"]])
+    return buf.getvalue()
+
+
+def _report(evals: Sequence[Evaluation], metrics: dict, episodes: dict[str, int], figures: dict[str, Path],
+            per_run: dict[str, list[Path]], out_dir: Path) -> str:
+    conf = evals[0].summary.get("confidence", 0.95)
+    lines = ["# Evaluation report", "",
+             "Runs: " + ", ".join(f"**{e.label}** ({e.summary.get('policy')}, `{e.eval_dir}`)" for e in evals),
+             "", f"Each cell: mean over episodes [{conf:.0%} t-interval]. Throughput, travel time and time loss "
+             "come from SUMO's own induction loops and tripinfo output.", "",
+             format_table(metrics, episodes, markdown=True, confidence=conf), ""]
+    for title, path in figures.items():
+        lines += [f"## {title.capitalize()}", "", f"![{title}]({path.relative_to(out_dir)})", ""]
+    for label, paths in per_run.items():
+        if paths:
+            lines += [f"## {label}: recorded episodes", ""]
+            lines += [f"![{p.stem}]({p.relative_to(out_dir)})" for p in paths] + [""]
+    return "\n".join(lines)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("runs", nargs="+", type=Path, help="evaluation folders, or run folders with eval/")
+    parser.add_argument("--out", type=Path, default=Path("report"), help="report folder (default: %(default)s)")
+    parser.add_argument("--labels", nargs="+", help="one label per run (default: folder names)")
+
+
+def run(args: argparse.Namespace) -> int:
+    result = compare(args.runs, args.out, args.labels)
+    log.info("wrote %s", args.out / "report.md")
+    print(format_table({k: v["metrics"] for k, v in result.items()},
+                       {k: int(v["episodes"]) for k, v in result.items()}))
+    return 0

@@ -1,0 +1,418 @@
+"""`cosim evaluate`: run trained AVs (a checkpoint) or a baseline on evaluation seeds; write CSV, JSON, plots.
+
+Contract:
+- `evaluate(cfg, policy, out_dir, ...)` runs `episodes` episodes with seeds `seed, seed + 1, ...`; the
+  default first seed, `EVAL_SEED` = 10,000,000, keeps evaluation disjoint from training, whose seeds count up
+  from `sim.seed` (a run would need ten million episodes to reach it). Policies: `checkpoint` (a trained
+  run; greedy argmax actions, or sampled), `sumo` (SUMO's own models drive the AVs: an all-human road),
+  `idle`, `random`, `scripted` (`cosim.policies`).
+- Into `out_dir` go: `evaluation.json` (what was evaluated), `config.yaml` (the resolved config),
+  `episodes.csv` (one row per episode, appended and flushed as each finishes: crash and crash by class,
+  merge and time to merge, distance and mean speed by class, the merging vehicle's distance, the guide AV
+  and its actions, SUMO's throughput [veh/h], travel time and time loss [s], and `distance_check`, the
+  largest |our odometer - SUMO's tripinfo routeLength| [m] over the episode's vehicles), `summary.json`
+  (each metric's mean and 95% t-interval, written atomically), `trajectories/seed_S.npz` for the first
+  `trajectories` episodes, `sumo/episode_S/` (SUMO's tripinfo and induction-loop files) and `plots/`.
+- Resume: a second call with the same `out_dir` skips the seeds already in `episodes.csv`; a folder
+  holding an evaluation of another policy / checkpoint / net is refused.
+- `workers > 1` runs episodes in spawned worker processes (libsumo runs one simulation per process).
+- Bad input raises a `CosimError`: no checkpoint in the run folder, a checkpoint whose observation shape
+  or agents do not fit the net/preset, a net without a merge (from the net description).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import json
+import logging
+import math
+import multiprocessing as mp
+import os
+import tempfile
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from tqdm import tqdm
+
+from cosim.cli import add_config_arguments
+from cosim.config import Config, load_config
+from cosim.control import Action
+from cosim.env import MergeEnv
+from cosim.errors import ConfigError, CosimError
+from cosim.metrics import Chainage, EpisodeTracker, format_table, summarize
+from cosim.policies import POLICIES
+
+log = logging.getLogger(__name__)
+
+EVAL_SEED = 10_000_000
+CHECKPOINT = "checkpoint"  # the policy name of a trained run
+BASELINES = ("sumo", "idle", "random", "scripted")
+# Config overrides a policy needs: the all-human baseline hands the AVs to SUMO.
+POLICY_OVERRIDES: dict[str, dict[str, Any]] = {"sumo": {"sim.av_driver": "sumo"}}
+CHECKPOINT_FILE = "checkpoint.pt"  # agents.checkpoint.CHECKPOINT_NAME, without importing torch here
+# Leading episodes.csv columns (the tracker's and SUMO's follow).
+FIRST_COLUMNS = ("seed", "policy")
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    """The config's `evaluate:` section (all optional; command-line flags override)."""
+
+    episodes: int = 100  # evaluation episodes
+    seed: int = EVAL_SEED  # first evaluation seed; training seeds count up from sim.seed
+    greedy: bool = True  # argmax actions; false: sampled from the policy
+    trajectories: int = 3  # first episodes whose per-step trajectories are kept for plots
+    workers: int = 1  # worker processes
+    confidence: float = 0.95  # of the intervals in the summary
+
+
+def evaluate_config(section: Mapping[str, Any]) -> EvaluateConfig:
+    """Validate the `evaluate:` section; unknown keys and wrong types raise `ConfigError`."""
+    fields = {f.name: f.type for f in dataclasses.fields(EvaluateConfig)}
+    kwargs = {}
+    for key, value in section.items():
+        if key not in fields:
+            raise ConfigError(f"config key evaluate.{key}: unknown; expected one of {sorted(fields)}")
+        want = {"int": int, "bool": bool, "float": float}[str(fields[key])]
+        if want is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if not isinstance(value, want) or (want is int and isinstance(value, bool)):
+            raise ConfigError(f"evaluate.{key}: expected {want.__name__}, got {value!r}")
+        kwargs[key] = value
+    ec = EvaluateConfig(**kwargs)
+    if ec.episodes < 1 or ec.workers < 1 or ec.trajectories < 0 or not 0 < ec.confidence < 1:
+        raise ConfigError("evaluate: need episodes >= 1, workers >= 1, trajectories >= 0, 0 < confidence < 1")
+    return ec
+
+
+# -- policies ------------------------------------------------------------------------------------------
+Observations = dict[str, np.ndarray]
+ActPolicy = Callable[[Observations], dict[str, int]]  # live agents' observations -> their actions
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    name: str  # CHECKPOINT or one of BASELINES
+    checkpoint: str | None = None  # the checkpoint file, for CHECKPOINT
+    greedy: bool = True
+
+
+def make_policy(spec: PolicySpec, env: MergeEnv) -> Callable[[int], ActPolicy]:
+    """A factory: episode seed -> the policy for that episode (seeded, so results do not depend on workers)."""
+    if spec.name == CHECKPOINT:
+        return _checkpoint_policy(Path(spec.checkpoint or ""), env, spec.greedy)
+    if spec.name == "sumo":  # actions are ignored when SUMO drives; send idle
+        return lambda seed: lambda obs: dict.fromkeys(obs, int(Action.IDLE))
+    if spec.name not in POLICIES:
+        raise ConfigError(f"--policy {spec.name}: unknown; expected one of {[CHECKPOINT, *BASELINES]}")
+    builder = POLICIES[spec.name]
+
+    def for_episode(seed: int) -> ActPolicy:
+        policy = builder(seed)
+        return lambda obs: policy(env)
+
+    return for_episode
+
+
+def _checkpoint_policy(path: Path, env: MergeEnv, greedy: bool) -> Callable[[int], ActPolicy]:
+    import torch  # only a trained policy needs torch
+
+    from agents.checkpoint import CheckpointError, load_policy
+
+    nets, meta = load_policy(path)
+    spec = meta["spec"]
+    agents = env.possible_agents
+    shape = tuple(env.observation_space(agents[0]).shape)
+    if tuple(spec["obs_shape"]) != shape:
+        raise CheckpointError(
+            f"checkpoint {path}: observations of shape {tuple(spec['obs_shape'])}, but this net/preset gives "
+            f"{shape} (observation preset {env.cfg.observation.preset!r}); evaluate with the run's config")
+    missing = [a for a in agents if a not in nets]
+    if missing or spec["n_actions"] != env.action_space(agents[0]).n:
+        raise CheckpointError(f"checkpoint {path}: trained for agents {sorted(nets)} with {spec['n_actions']} "
+                              f"actions; this scenario has {agents} with {env.action_space(agents[0]).n}")
+
+    def for_episode(seed: int) -> ActPolicy:
+        torch.manual_seed(seed)  # sampled actions are reproducible per episode
+
+        def act(obs: Observations) -> dict[str, int]:
+            # One batch per network: agents sharing a policy act together.
+            groups: dict[int, list[str]] = {}
+            for a in obs:
+                groups.setdefault(id(nets[a]), []).append(a)
+            actions = {}
+            for names in groups.values():
+                batch = np.stack([obs[a] for a in names])  # (B, F, C, H, W)
+                for a, act_ in zip(names, nets[names[0]].act(batch, greedy=greedy), strict=True):
+                    actions[a] = int(act_)
+            return actions
+
+        return act
+
+    return for_episode
+
+
+# -- episodes ------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Job:
+    """Everything a worker needs, picklable."""
+
+    config: dict[str, Any]  # Config.to_dict() with the evaluation's overrides
+    policy: PolicySpec
+    out_dir: str
+    record: frozenset[int]  # seeds whose trajectories are saved
+
+
+class Runner:
+    """One env and one policy in this process; `run(seed)` plays an episode and returns its row."""
+
+    def __init__(self, job: Job) -> None:
+        self.job = job
+        self.env = MergeEnv(load_config(job.config))
+        self.chainage = Chainage.from_net(self.env.desc, self.env.road)
+        self.policy = make_policy(job.policy, self.env)
+
+    def run(self, seed: int) -> dict[str, Any]:
+        env = self.env
+        act = self.policy(seed)
+        obs, _ = env.reset(seed=seed)
+        tracker = EpisodeTracker(env.zone, self.chainage, record=seed in self.job.record)
+        tracker.observe(env.snapshot)
+        returns = dict.fromkeys(env.possible_agents, 0.0)
+        infos: dict[str, Any] = {}
+        while env.agents:
+            actions = act(obs)
+            obs, rewards, _, _, infos = env.step(actions)
+            for a, r in rewards.items():
+                returns[a] += r
+            tracker.observe(env.snapshot, actions if env.session.drive_avs else None)
+        env.flush_outputs()
+        summary = next(iter(infos.values()), {}).get("episode", {})
+        row = {"seed": seed, "policy": self.job.policy.name, **tracker.row(),
+               "merge_failed": bool(summary.get("merge_failed", False)),
+               "av_return": float(np.mean(list(returns.values())))}
+        sumo = env.sumo_outputs.pop(seed, None)
+        if sumo is not None:
+            row.update(sumo.as_row())
+            common = [v for v in tracker.distance if v in sumo.distance]
+            row["distance_check"] = max((abs(tracker.distance[v] - sumo.distance[v]) for v in common),
+                                        default=math.nan)
+        if tracker.record:
+            _save_npz(Path(self.job.out_dir) / "trajectories" / f"seed_{seed}.npz", tracker.trajectory())
+        return row
+
+    def close(self) -> None:
+        self.env.close()
+
+
+_RUNNER: Runner | None = None  # the worker process's runner
+
+
+def _worker_init(job: Job) -> None:
+    global _RUNNER
+    try:
+        import torch
+
+        torch.set_num_threads(1)  # W workers on W cores
+    except ImportError:  # pragma: no cover - torch is a dependency
+        pass
+    _RUNNER = Runner(job)
+
+
+def _worker_run(seed: int) -> dict[str, Any]:
+    assert _RUNNER is not None
+    return _RUNNER.run(seed)
+
+
+def run_episodes(job: Job, seeds: Sequence[int], workers: int = 1) -> Iterator[dict[str, Any]]:
+    """Rows of the given episodes as they finish (in seed order with one worker, else as they come)."""
+    if workers <= 1 or len(seeds) <= 1:
+        runner = Runner(job)
+        try:
+            for seed in seeds:
+                yield runner.run(seed)
+        finally:
+            runner.close()
+        return
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(min(workers, len(seeds)), initializer=_worker_init, initargs=(job,)) as pool:
+        yield from pool.imap_unordered(_worker_run, seeds)
+
+
+# -- files ---------------------------------------------------------------------------------------------
+def _atomic_write(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def _save_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz", dir=path.parent)
+    with os.fdopen(fd, "wb") as f:
+        np.savez_compressed(f, **arrays)
+    os.replace(tmp, path)
+
+
+def read_rows(path: Path) -> list[dict[str, str]]:
+    """Rows of an episodes.csv (a half-written last line from an interrupted run is dropped)."""
+    if not path.is_file():
+        return []
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    return [r for r in rows if r.get("seed") and None not in r.values()]
+
+
+class RowWriter:
+    """Appends rows to episodes.csv, flushed per row; keeps the header of an existing file."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.fields: list[str] | None = None
+        if path.is_file() and path.stat().st_size:
+            with path.open(newline="") as f:
+                self.fields = next(csv.reader(f), None)
+
+    def write(self, row: Mapping[str, Any]) -> None:
+        new = self.fields is None
+        if new:
+            self.fields = list(row)
+        with self.path.open("a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=self.fields, extrasaction="ignore")
+            if new:
+                writer.writeheader()
+            writer.writerow(dict(row))
+            f.flush()
+
+
+def trajectory_files(out_dir: Path) -> list[Path]:
+    return sorted((out_dir / "trajectories").glob("seed_*.npz"), key=lambda p: int(p.stem.split("_")[1]))
+
+
+def load_trajectory(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path) as data:
+        return {k: data[k] for k in data.files}
+
+
+# -- the evaluation ------------------------------------------------------------------------------------
+def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed: int = EVAL_SEED,
+             workers: int = 1, trajectories: int = 3, confidence: float = 0.95, run_dir: Path | None = None,
+             plots: bool = True) -> dict[str, Any]:
+    """Evaluate `policy` on episodes `seed .. seed + episodes - 1` into `out_dir`; returns the summary dict
+    (also written to `out_dir/summary.json`). Resumes an interrupted evaluation in the same folder."""
+    out_dir = Path(out_dir).resolve()
+    overrides = {**POLICY_OVERRIDES.get(policy.name, {}), "sim.outputs": True,
+                 "sim.output_dir": str(out_dir / "sumo")}
+    cfg = load_config(cfg, overrides)
+    meta = {"policy": policy.name, "checkpoint": policy.checkpoint, "greedy": policy.greedy,
+            "net": cfg.net.file, "run": None if run_dir is None else str(Path(run_dir).resolve())}
+    _claim(out_dir, meta, cfg)
+    seeds = [seed + k for k in range(episodes)]
+    csv_path = out_dir / "episodes.csv"
+    done = {int(r["seed"]) for r in read_rows(csv_path)}
+    todo = [s for s in seeds if s not in done]
+    if done & set(seeds):
+        log.info("resuming %s: %d of %d episodes already done", out_dir, len(done & set(seeds)), episodes)
+    job = Job(cfg.to_dict(), policy, str(out_dir), frozenset(seeds[:trajectories]))
+    writer = RowWriter(csv_path)
+    for row in tqdm(run_episodes(job, todo, workers), total=len(todo), desc=f"evaluate {policy.name}",
+                    unit="ep", leave=False):
+        writer.write(row)
+    rows = [r for r in read_rows(csv_path) if int(r["seed"]) in set(seeds)]
+    rows.sort(key=lambda r: int(r["seed"]))
+    checks = [float(r["distance_check"]) for r in rows if r.get("distance_check") not in (None, "", "nan")]
+    summary = {**meta, "episodes": len(rows), "first_seed": seed, "confidence": confidence,
+               "metrics": summarize(rows, confidence),
+               "distance_check_max_m": max(checks) if checks else math.nan}
+    _atomic_write(out_dir / "summary.json", json.dumps(summary, indent=2, allow_nan=True) + "\n")
+    if checks and max(checks) > 0.5:
+        log.warning("our distances and SUMO's tripinfo differ by up to %.2f m", max(checks))
+    if plots:
+        from agents.compare import plot_run  # matplotlib only when plotting
+
+        plot_run(out_dir, out_dir / "plots", label=policy.name)
+    return summary
+
+
+def _claim(out_dir: Path, meta: dict[str, Any], cfg: Config) -> None:
+    """Write evaluation.json and config.yaml, or check that an existing evaluation is the same one."""
+    path = out_dir / "evaluation.json"
+    if path.is_file():
+        old = json.loads(path.read_text())
+        differs = [k for k in ("policy", "checkpoint", "greedy", "net") if old.get(k) != meta[k]]
+        if differs:
+            raise CosimError(f"{out_dir}: holds an evaluation with other {', '.join(differs)} "
+                             f"({', '.join(f'{k}={old.get(k)!r}' for k in differs)}); choose another --out")
+        return
+    out_dir.mkdir(parents=True, exist_ok=True)
+    _atomic_write(out_dir / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    _atomic_write(path, json.dumps(meta, indent=2) + "\n")
+
+
+def print_summary(summary: Mapping[str, Any], label: str) -> None:
+    """The one print of the command: the summary table."""
+    print(format_table({label: summary["metrics"]}, {label: summary["episodes"]},
+                       confidence=summary.get("confidence", 0.95)))
+
+
+# -- command line --------------------------------------------------------------------------------------
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_config_arguments(parser, default=None)
+    parser.add_argument("--run", type=Path, help="training run folder (its config.yaml and checkpoint.pt)")
+    parser.add_argument("--checkpoint", type=Path, help="checkpoint file (default: RUN/checkpoint.pt)")
+    parser.add_argument("--policy", choices=[CHECKPOINT, *BASELINES], default=None,
+                        help="a baseline instead of a checkpoint: sumo (SUMO drives the AVs), idle, random, "
+                             "scripted (default: checkpoint)")
+    parser.add_argument("--episodes", type=int, help="evaluation episodes (default: evaluate.episodes, 100)")
+    parser.add_argument("--net", type=Path, help="evaluate on another .net.xml (its description is found "
+                                                 "beside it or inferred)")
+    parser.add_argument("--seed", type=int, help=f"first evaluation seed (default: {EVAL_SEED:,}, disjoint "
+                                                 "from training seeds)")
+    parser.add_argument("--workers", type=int, help="worker processes (default: 1)")
+    parser.add_argument("--sample", action="store_true", help="sample actions instead of the greedy argmax")
+    parser.add_argument("--trajectories", type=int, help="episodes whose trajectories are plotted (default: 3)")
+    parser.add_argument("--out", type=Path, help="output folder (default: RUN/eval)")
+    parser.add_argument("--no-plots", action="store_true", help="skip the figures")
+
+
+def run(args: argparse.Namespace) -> int:
+    name = args.policy or CHECKPOINT
+    if args.run is not None and not args.run.is_dir():
+        raise CosimError(f"--run {args.run}: not a folder")
+    config = args.config or (args.run / "config.yaml" if args.run else "configs/default.yaml")
+    overrides = list(args.overrides)
+    if args.net is not None:
+        if not args.net.is_file():
+            raise ConfigError(f"--net {args.net}: not found")
+        overrides += [f"net.file={args.net.resolve()}", "net.description=null"]
+    cfg = load_config(config, overrides)
+    ec = evaluate_config(cfg.evaluate)
+    checkpoint = None
+    if name == CHECKPOINT:
+        if args.run is None and args.checkpoint is None:
+            raise CosimError("cosim evaluate: give --run RUN (or --checkpoint FILE) for a trained policy, "
+                             f"or --policy {{{','.join(BASELINES)}}} for a baseline")
+        checkpoint = args.checkpoint or args.run / CHECKPOINT_FILE
+        if not checkpoint.is_file():
+            raise CosimError(f"checkpoint {checkpoint}: not found; train the run first (cosim train), pass "
+                             f"--checkpoint FILE, or evaluate a baseline with --policy")
+        checkpoint = str(checkpoint.resolve())
+    out = args.out or (args.run / "eval" if args.run else None)
+    if out is None:
+        raise CosimError("cosim evaluate: give --out DIR for a baseline without --run")
+    policy = PolicySpec(name, checkpoint, greedy=ec.greedy and not args.sample)
+    summary = evaluate(cfg, policy, out, episodes=args.episodes or ec.episodes,
+                       seed=ec.seed if args.seed is None else args.seed, workers=args.workers or ec.workers,
+                       trajectories=ec.trajectories if args.trajectories is None else args.trajectories,
+                       confidence=ec.confidence, run_dir=args.run, plots=not args.no_plots)
+    log.info("wrote %s", Path(out) / "summary.json")
+    print_summary(summary, out.name if args.run is None else args.run.name)
+    return 0
