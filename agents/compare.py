@@ -30,7 +30,7 @@ from agents.evaluate import load_trajectory, read_rows, trajectory_files
 from cosim import plots
 from cosim.config import load_config
 from cosim.errors import CosimError
-from cosim.metrics import SUMMARY_METRICS, format_table
+from cosim.metrics import SUMMARY_METRICS, format_table, summarize
 from cosim.roadnet import load_roadnet
 
 log = logging.getLogger(__name__)
@@ -56,11 +56,11 @@ def find_evaluation(path: Path, label: str | None = None) -> Evaluation:
                      f"`cosim evaluate --out {path}` (or `--run {path}`) first")
 
 
-def plot_run(eval_dir: Path, plots_dir: Path, label: str) -> list[Path]:
+def plot_run(eval_dir: Path, plots_dir: Path, label: str, histogram: bool = True) -> list[Path]:
     """One evaluation's figures: merger distance histogram, and per recorded episode a time-space diagram
     with the guide AV's speed profile and top views around the merge."""
     out = [plots.distance_histogram({label: _column(eval_dir, "merger_distance")},
-                                    plots_dir / "merger_distance.png")]
+                                    plots_dir / "merger_distance.png")] if histogram else []
     files = trajectory_files(eval_dir)
     if files:
         cfg = load_config(eval_dir / "config.yaml")
@@ -102,8 +102,10 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
         raise CosimError(f"runs need distinct labels, got {names}; pass --labels")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    metrics = {e.label: e.summary["metrics"] for e in evals}
-    episodes = {e.label: int(e.summary["episodes"]) for e in evals}
+    # Recomputed from episodes.csv, so every run is summarised the same way.
+    rows = {e.label: read_rows(e.eval_dir / "episodes.csv") for e in evals}
+    metrics = {e.label: summarize(rows[e.label], e.summary.get("confidence", 0.95)) for e in evals}
+    episodes = {e.label: len(rows[e.label]) for e in evals}
     figures = {"bars": plots.bars(metrics, out_dir / "bars.png"),
                "merger distance": plots.distance_histogram(
                    {e.label: _column(e.eval_dir, "merger_distance") for e in evals}, out_dir / "merger_distance.png")}
@@ -113,12 +115,13 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
         figures["training curves"] = curves
     per_run: dict[str, list[Path]] = {}
     for e in tqdm(evals, desc="plots", unit="run", leave=False):
-        per_run[e.label] = plot_run(e.eval_dir, out_dir / e.label, e.label)[1:]
-    _atomic_write(out_dir / "summary.json", json.dumps(
-        {e.label: {**e.summary, "eval_dir": str(e.eval_dir)} for e in evals}, indent=2) + "\n")
+        per_run[e.label] = plot_run(e.eval_dir, out_dir / e.label, e.label, histogram=False)
+    result = {e.label: {**e.summary, "episodes": episodes[e.label], "metrics": metrics[e.label],
+                        "eval_dir": str(e.eval_dir)} for e in evals}
+    _atomic_write(out_dir / "summary.json", json.dumps(result, indent=2) + "\n")
     _atomic_write(out_dir / "summary.csv", _summary_csv(metrics))
     _atomic_write(out_dir / "report.md", _report(evals, metrics, episodes, figures, per_run, out_dir))
-    return {e.label: e.summary for e in evals}
+    return result
 
 
 def _summary_csv(metrics: dict[str, dict[str, dict[str, float]]]) -> str:

@@ -5,9 +5,9 @@ observations (read-only views into a buffer that the next step overwrites, like 
 `Discrete(5)` actions. Each decision every agent sees a cue (left half of channel 0 or right half of
 channel 1 lit) and earns 1 for answering it with lane-left (0) or lane-right (2) respectively, so the
 optimal policy is learnable from the observation. Accelerate (3) "crashes" the agent: reward -1 and
-terminated. Agents still running at `horizon` steps are truncated. Infos carry `reward_terms` and, on the last step, `episode`.
-`fail_once_file` makes the env raise `SimulationError` once (across processes) at step `fail_at_step`,
-to test worker restarts. `make_fake_env(**kw)` is a picklable factory for the rollout workers.
+terminated. Agents still running at `horizon` steps are truncated. Infos carry `reward_terms` and, on
+the last step, `episode`. `fail_once_file` makes the env raise `SimulationError` once (across processes)
+at step `fail_at_step`, to test worker restarts. `make_fake_env(**kw)` is a picklable env factory.
 """
 
 from __future__ import annotations

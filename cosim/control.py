@@ -9,7 +9,6 @@ may penalise. The session then ramps the actual speed toward the target within t
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import IntEnum
 
@@ -38,16 +37,17 @@ class Decision:
     invalid: np.ndarray  # (N,) bool: a lane change toward no usable lane
 
 
-def decide(actions: np.ndarray, lanes: np.ndarray, through: Sequence[frozenset[int]],
-           speed_targets: np.ndarray, av: AVConfig) -> Decision:
-    """actions, lanes, speed_targets: (N,) per AV; through[i]: the usable lane indices on AV i's edge
-    (empty on a junction-internal edge, where no lane change is possible)."""
+def decide(actions: np.ndarray, lanes: np.ndarray, usable: np.ndarray, speed_targets: np.ndarray,
+           av: AVConfig) -> Decision:
+    """actions, lanes, speed_targets: (N,) per AV; usable: (N, L) bool, the lanes AV i may use on its
+    current edge (all False on a junction-internal edge, where no lane change is possible)."""
     actions = np.asarray(actions, dtype=np.int64)
     if actions.size and (actions.min() < 0 or actions.max() >= N_ACTIONS):
         raise ValueError(f"actions must be in 0..{N_ACTIONS - 1}, got {actions.tolist()}")
     target = np.clip(speed_targets + _SPEED_DELTA[actions] * av.speed_step, 0.0, av.max_speed)
     wanted = _LANE_DELTA[actions]
-    ok = np.array([(lane + d) in lanes_ok for lane, d, lanes_ok in zip(lanes, wanted, through, strict=True)],
-                  dtype=bool)
+    dest = lanes + wanted
+    inside = (dest >= 0) & (dest < usable.shape[1])
+    ok = inside & usable[np.arange(len(dest)), np.where(inside, dest, 0)]
     change = np.where(ok, wanted, 0)
     return Decision(target_speed=target, lane_change=change, invalid=(wanted != 0) & ~ok)

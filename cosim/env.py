@@ -66,9 +66,6 @@ class MergeEnv(ParallelEnv):
         self._obs_space = gymnasium.spaces.Box(low=0, high=self.mapper.high, shape=self.mapper.shape,
                                                dtype=self.mapper.dtype)
         self._act_space = gymnasium.spaces.Discrete(N_ACTIONS)
-        # Lanes an AV may use on each edge: through lanes only, never an acceleration lane.
-        self._usable = {self.road.edge_index[e]: frozenset(self.desc.through_lanes(self.road, e))
-                        for e in self.road.edge_ids}
         self._phis = np.asarray(config.phis(), dtype=np.float64)
         self.max_steps = max(1, round(config.sim.horizon / config.sim.decision_period))
         self._next_seed = config.sim.seed
@@ -188,8 +185,8 @@ class MergeEnv(ParallelEnv):
             return lane_changed, invalid
         idx, rows = idx[present], rows[present]
         acts = np.array([int(actions[a]) for a, p in zip(acting, present, strict=True) if p])
-        through = [self._usable.get(int(e), frozenset()) for e in prev.edge[rows]]
-        d = decide(acts, prev.lane[rows], through, self._target[idx], self.cfg.av)
+        # AVs may use the highway's through lanes only, never the acceleration lane.
+        d = decide(acts, prev.lane[rows], self.zone.through[prev.edge[rows]], self._target[idx], self.cfg.av)
         self._target[idx] = d.target_speed
         for i, change in zip(idx, d.lane_change, strict=True):
             if change:

@@ -17,27 +17,30 @@ from cosim.roadnet import RoadNet
 from cosim.snapshot import KIND_MERGER, Snapshot
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class MergeZone:
-    highway: frozenset[int]  # edge indices of the highway
-    merge_edge: int
+    merge_edge: int  # edge index
     accel_lanes: frozenset[int]
     accel_end: float  # [m] length of the acceleration lane
+    # (E + 1, max lanes) bool: lane is a through lane of the highway; the last row (edge -1, junction
+    # internals) is all False, so indexing with the snapshot's edge column needs no special case.
+    through: np.ndarray
 
     @classmethod
     def from_net(cls, desc: NetDescription, road: RoadNet) -> MergeZone:
+        through = np.zeros((len(road.edge_ids) + 1, max(road.num_lanes(e) for e in road.edge_ids)), dtype=bool)
+        for e in desc.highway:
+            through[road.edge_index[e], list(desc.through_lanes(road, e))] = True
         return cls(
-            highway=frozenset(road.edge_index[e] for e in desc.highway),
             merge_edge=road.edge_index[desc.merge_edge],
             accel_lanes=frozenset(desc.accel_lanes),
             accel_end=min(road.lane(desc.merge_edge, i).length for i in desc.accel_lanes),
+            through=through,
         )
 
     def on_through_lane(self, edge: np.ndarray, lane: np.ndarray) -> np.ndarray:
         """(V,) bool: on a highway edge, and not on its acceleration lane."""
-        on_hw = np.isin(edge, list(self.highway))
-        on_accel = (edge == self.merge_edge) & np.isin(lane, list(self.accel_lanes))
-        return on_hw & ~on_accel
+        return self.through[edge, lane]
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,8 @@ Contract:
 - `mean_ci(values, confidence)` is the mean with a two-sided Student-t interval over the finite values
   (NaNs, e.g. the time to merge of an episode without a merge, are left out); with one value the interval
   is NaN, with none the mean is NaN too. `summarize(rows)` applies it to every metric of `SUMMARY_METRICS`
-  over per-episode rows (dicts, as written to `episodes.csv`).
+  over per-episode rows (dicts, as written to `episodes.csv`); the intervals of rates (crash %, merge %)
+  are clipped to [0, 100] %.
 - `Chainage.from_net(desc, road)` places every highway and ramp edge on one longitudinal axis [m]: highway
   edges at their start's distance from the first highway edge's start, ramp edges so that the ramp's end
   meets the merge edge's start. `Chainage.of(snap)` is each vehicle's front bumper on that axis (NaN on
@@ -154,6 +155,8 @@ def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95,
         if not any(column in r for r in rows):
             continue
         ci = mean_ci((_number(r.get(column)) * scale for r in rows), confidence)
+        if label.endswith("[%]") and ci.n > 1:  # a rate's interval cannot leave [0, 100] %
+            ci = Interval(ci.mean, max(ci.low, 0.0), min(ci.high, scale), ci.n)
         out[label] = ci.as_dict()
     return out
 

@@ -222,7 +222,11 @@ def top_views(traj: Mapping[str, np.ndarray], lanes: Sequence[tuple[np.ndarray, 
                                    angle=math.degrees(traj["heading"][r]), rotation_point="center",
                                    facecolor=color, edgecolor="red" if traj["crashed"][r] else "k", lw=0.6))
         ax.set_xlim(cx - half_window, cx + half_window)
-        ax.set_ylim(cy - 18, cy + 18)
+        # The lanes overlapping the window set its height.
+        seen = [(p[:, 1].min(), p[:, 1].max()) for p in polys
+                if p[:, 0].min() <= cx + half_window and p[:, 0].max() >= cx - half_window]
+        lo, hi = (min(a for a, _ in seen), max(b for _, b in seen)) if seen else (cy - 18, cy + 18)
+        ax.set_ylim(lo - 2, hi + 2)
         ax.set_aspect("equal")
         ax.set_title(f"t = {times[k]:.1f} s", fontsize=9)
         ax.tick_params(labelsize=7)

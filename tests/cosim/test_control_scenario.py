@@ -20,21 +20,21 @@ AV = AVConfig(speed_step=2.0, max_speed=30.0)
 
 
 def test_decide_speed_and_lanes() -> None:
-    through = [frozenset({1, 2, 3})] * 5
+    through = np.tile([False, True, True, True], (5, 1))  # lane 0 is an acceleration lane
     d = decide(np.array([Action.LANE_LEFT, Action.IDLE, Action.LANE_RIGHT, Action.ACCELERATE, Action.DECELERATE]),
-               lanes=np.array([3, 2, 1, 2, 2]), through=through, speed_targets=np.array([20, 20, 20, 29.5, 1.0]),
+               lanes=np.array([3, 2, 1, 2, 2]), usable=through, speed_targets=np.array([20, 20, 20, 29.5, 1.0]),
                av=AV)
     assert d.target_speed.tolist() == [20, 20, 20, 30.0, 0.0]  # clipped to [0, max_speed]
     # Left from the leftmost lane and right into the acceleration lane (index 0) are no-ops.
     assert d.lane_change.tolist() == [0, 0, 0, 0, 0]
     assert d.invalid.tolist() == [True, False, True, False, False]
     d = decide(np.array([Action.LANE_LEFT, Action.LANE_RIGHT]), lanes=np.array([1, 3]),
-               through=[frozenset({1, 2, 3})] * 2, speed_targets=np.zeros(2), av=AV)
+               usable=np.tile([False, True, True, True], (2, 1)), speed_targets=np.zeros(2), av=AV)
     assert d.lane_change.tolist() == [1, -1] and not d.invalid.any()
-    d = decide(np.array([Action.LANE_LEFT]), np.array([0]), [frozenset()], np.zeros(1), AV)
+    d = decide(np.array([Action.LANE_LEFT]), np.array([0]), np.zeros((1, 4), dtype=bool), np.zeros(1), AV)
     assert d.invalid.tolist() == [True]  # no lane change on a junction-internal edge
     with pytest.raises(ValueError, match="actions must be in 0..4"):
-        decide(np.array([7]), np.array([0]), [frozenset({0})], np.zeros(1), AV)
+        decide(np.array([7]), np.array([0]), np.ones((1, 4), dtype=bool), np.zeros(1), AV)
 
 
 @pytest.fixture(scope="module")

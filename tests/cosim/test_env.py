@@ -82,14 +82,14 @@ def _through_rank(env: MergeEnv, agent: str) -> int:
     acceleration lane at index 0, so raw lane indices shift by one there)."""
     snap = env.snapshot
     r = snap.row_of(agent)
-    return sorted(env._usable[int(snap.edge[r])]).index(int(snap.lane[r]))
+    return list(np.flatnonzero(env.zone.through[snap.edge[r]])).index(int(snap.lane[r]))
 
 
 @pytest.mark.parametrize("direction", [Action.LANE_LEFT, Action.LANE_RIGHT])
 def test_lane_changes_move_one_lane(env: MergeEnv, direction: Action) -> None:
     env.reset(seed=0)
     delta = 1 if direction == Action.LANE_LEFT else -1
-    n_lanes = len(env._usable[int(env.snapshot.edge[env.snapshot.row_of("av_0")])])
+    n_lanes = int(env.zone.through[env.snapshot.edge[env.snapshot.row_of("av_0")]].sum())
     agent = next(a for a in env.agents if 0 <= _through_rank(env, a) + delta < n_lanes)
     rank = _through_rank(env, agent)
     _, _, _, _, info = env.step(_only(env, agent, direction))
@@ -103,7 +103,7 @@ def test_lane_change_toward_no_lane_is_flagged_noop(env: MergeEnv) -> None:
     snap = env.snapshot
     # An AV in its edge's leftmost or rightmost through lane (seed 0 has one).
     for agent in env.agents:
-        n_lanes = len(env._usable[int(snap.edge[snap.row_of(agent)])])
+        n_lanes = int(env.zone.through[snap.edge[snap.row_of(agent)]].sum())
         rank = _through_rank(env, agent)
         if rank in (0, n_lanes - 1):
             break
@@ -154,7 +154,7 @@ def test_provoked_collision_ends_the_right_agents() -> None:
         edge = env.road.edge_ids[snap.edge[r]]
         # The bystander steps aside, then the rear AV is put 2 m behind the front one, in its lane
         # (moveTo takes the front-bumper position; jumping over a vehicle in the lane would count as a crash).
-        aside = next(lane for lane in sorted(env._usable[int(snap.edge[r])]) if lane != snap.lane[r])
+        aside = next(lane for lane in list(np.flatnonzero(env.zone.through[snap.edge[r]])) if lane != snap.lane[r])
         libsumo.vehicle.moveTo(bystander, f"{edge}_{aside}", snap.lane_pos[rows[bystander]])
         libsumo.vehicle.moveTo(rear, f"{edge}_{snap.lane[r]}", snap.lane_pos[r] - snap.length[r] - 2.0)
         ended: dict[str, bool] = {}
