@@ -39,9 +39,13 @@ REWARD_TERMS: dict[str, float] = {
 }
 
 
+# The bundled 3-lane merge (sumo_net/merge), the net of every config that names none.
+DEFAULT_NET = Path(__file__).resolve().parents[1] / "sumo_net" / "merge" / "merge.net.xml"
+
+
 @dataclass(frozen=True)
 class NetConfig:
-    file: str = "../sumo_net/merge/merge.net.xml"  # the SUMO .net.xml (relative to the config file)
+    file: str = str(DEFAULT_NET)  # the SUMO .net.xml (in a YAML file: relative to that file)
     # Net description YAML; None: `<net stem>.yaml` beside the net, else inferred from the net.
     description: str | None = None
 
@@ -189,37 +193,65 @@ def load_config(
     overrides: Mapping[str, Any] | Sequence[str] | None = None,
 ) -> Config:
     """Load and validate a config from a YAML path, a dict, or an existing `Config`, applying overrides."""
-    base_dir = Path.cwd()
     source = None
     if config is None:
         data: dict[str, Any] = {}
     elif isinstance(config, Config):
         data, source = config.to_dict(), config.source
     elif isinstance(config, Mapping):
-        data = _plain(dict(config))
+        data = _plain(config)
     else:
         path = Path(config)
-        if not path.is_file():
-            raise ConfigError(f"config file {path}: not found")
-        try:
-            loaded = yaml.safe_load(path.read_text())
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"config file {path}: not valid YAML ({exc})") from None
-        if loaded is not None and not isinstance(loaded, dict):
-            raise ConfigError(f"config file {path}: expected a mapping of sections at top level")
-        data, base_dir, source = loaded or {}, path.resolve().parent, str(path)
+        data, source = _read_yaml(path), str(path)
     for key, value in _parse_overrides(overrides).items():
         _set_dotted(data, key, value)
     cfg = _build(Config, data, "")
     net = cfg.net
+    # Paths from overrides or dicts are relative to the working directory, as on a command line.
     net = dataclasses.replace(
         net,
-        file=str(_resolve(net.file, base_dir)),
-        description=None if net.description is None else str(_resolve(net.description, base_dir)),
+        file=str(_resolve(net.file, Path.cwd())),
+        description=None if net.description is None else str(_resolve(net.description, Path.cwd())),
     )
     cfg = dataclasses.replace(cfg, net=net, source=source)
     validate(cfg)
     return cfg
+
+
+def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """A YAML config as a dict; `base: other.yaml` (relative to this file) is read first and this file's
+    keys are merged over it, so experiments state only what differs."""
+    if not path.is_file():
+        raise ConfigError(f"config file {path}: not found")
+    try:
+        loaded = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {path}: not valid YAML ({exc})") from None
+    if loaded is not None and not isinstance(loaded, dict):
+        raise ConfigError(f"config file {path}: expected a mapping of sections at top level")
+    data = loaded or {}
+    net = data.get("net")
+    if isinstance(net, dict):  # paths in a file are relative to that file
+        for key in ("file", "description"):
+            if isinstance(net.get(key), str):
+                net[key] = str(_resolve(net[key], path.resolve().parent))
+    base = data.pop("base", None)
+    if base is None:
+        return data
+    base_path = (path.resolve().parent / str(base)).resolve()
+    if base_path in seen:
+        raise ConfigError(f"config file {path}: base {base} includes itself")
+    merged = _read_yaml(base_path, (*seen, path.resolve()))
+    _merge(merged, data)
+    return merged
+
+
+def _merge(into: dict[str, Any], over: Mapping[str, Any]) -> None:
+    for key, value in over.items():
+        if isinstance(value, Mapping) and isinstance(into.get(key), dict):
+            _merge(into[key], value)
+        else:
+            into[key] = value
 
 
 def _resolve(path: str, base: Path) -> Path:
@@ -250,6 +282,12 @@ def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
             raise ConfigError(f"override {key}: {'.'.join(parents[: i + 1])} is not a section")
         node = child
     node[leaf] = value
+
+
+def parse_section(cls: type, data: Any, where: str) -> Any:
+    """Validate a mapping into the frozen dataclass `cls`: unknown keys and wrong types are `ConfigError`s
+    naming `where.key`. Later stages (trainer, evaluation) validate their own config sections with it."""
+    return _build(cls, data if data is not None else {}, where)
 
 
 def _build(cls: type, data: Any, where: str) -> Any:

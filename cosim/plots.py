@@ -197,7 +197,7 @@ def _lane_polygons(lanes: Sequence[tuple[np.ndarray, float]]) -> list[np.ndarray
 
 
 def top_views(traj: Mapping[str, np.ndarray], lanes: Sequence[tuple[np.ndarray, float]], path: Path,
-              offsets: Sequence[float] = (-3.0, 0.0, 3.0), half_window: float = 90.0) -> Path:
+              offsets: Sequence[float] = (-3.0, 0.0, 3.0), half_window: float = 110.0) -> Path:
     """Top views at the merge time plus `offsets` [s] (episode end when there was no merge), centred on the
     merging vehicle (or its last place), vehicles drawn to scale and coloured by class, the guide AV orange."""
     times = np.asarray(traj["time"])

@@ -29,7 +29,8 @@ def test_overrides_dict_and_cli_strings() -> None:
 
 
 def test_per_agent_phi_and_round_trip() -> None:
-    cfg = load_config(None, {"scenario.n_avs": 2, "reward.phi": [0.0, math.pi / 2]})
+    cfg = load_config(None, {"scenario.n_avs": 2, "reward.phi": [0.0, math.pi / 2],
+                             "reward.weights": {"collision": 9.0}, "train": {"lr": 0.1}})
     assert cfg.phis() == (0.0, math.pi / 2)
     assert load_config(cfg.to_dict()) == cfg
 
@@ -70,3 +71,19 @@ def test_bad_files(tmp_path: Path) -> None:
         load_config(bad)
     with pytest.raises(ConfigError, match="KEY=VALUE"):
         load_config(None, ["reward.phi"])
+
+
+def test_base_config_and_path_resolution(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    exp = tmp_path / "exp"
+    exp.mkdir()
+    (exp / "child.yaml").write_text(f"base: {ROOT / 'configs' / 'default.yaml'}\nreward:\n  phi: 0.5\n")
+    cfg = load_config(exp / "child.yaml")
+    assert cfg.reward.phi == 0.5 and cfg.scenario.n_avs == load_config(ROOT / "configs" / "default.yaml").scenario.n_avs
+    assert Path(cfg.net.file) == ROOT / "sumo_net" / "merge" / "merge.net.xml"  # relative to the base's folder
+    (exp / "own.yaml").write_text("net:\n  file: nets/x.net.xml\n")
+    assert load_config(exp / "own.yaml").net.file == str(exp / "nets" / "x.net.xml")
+    monkeypatch.chdir(tmp_path)  # a command-line override is relative to the working directory
+    assert load_config(exp / "own.yaml", ["net.file=y.net.xml"]).net.file == str(tmp_path / "y.net.xml")
+    (exp / "loop.yaml").write_text("base: loop.yaml\n")
+    with pytest.raises(ConfigError, match="includes itself"):
+        load_config(exp / "loop.yaml")
