@@ -314,14 +314,15 @@ def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed
     cfg = load_config(cfg, overrides)
     meta = {"policy": policy.name, "checkpoint": policy.checkpoint, "greedy": policy.greedy,
             "net": cfg.net.file, "run": None if run_dir is None else str(Path(run_dir).resolve())}
-    _claim(out_dir, meta, cfg)
     seeds = [seed + k for k in range(episodes)]
+    job = Job(cfg.to_dict(), policy, str(out_dir), frozenset(seeds[:trajectories]))
+    Runner(job).close()  # bad nets and checkpoints fail here, before the folder is claimed
+    _claim(out_dir, meta, cfg)
     csv_path = out_dir / "episodes.csv"
     done = {int(r["seed"]) for r in read_rows(csv_path)}
     todo = [s for s in seeds if s not in done]
     if done & set(seeds):
         log.info("resuming %s: %d of %d episodes already done", out_dir, len(done & set(seeds)), episodes)
-    job = Job(cfg.to_dict(), policy, str(out_dir), frozenset(seeds[:trajectories]))
     writer = RowWriter(csv_path)
     for row in tqdm(run_episodes(job, todo, workers), total=len(todo), desc=f"evaluate {policy.name}",
                     unit="ep", leave=False):
@@ -385,8 +386,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     name = args.policy or CHECKPOINT
-    if args.run is not None and not args.run.is_dir():
-        raise CosimError(f"--run {args.run}: not a folder")
+    if args.run is not None and not (args.run / "config.yaml").is_file():
+        raise CosimError(f"--run {args.run}: not a training run folder (no config.yaml; `cosim train` writes one)")
     config = args.config or (args.run / "config.yaml" if args.run else "configs/default.yaml")
     overrides = list(args.overrides)
     if args.net is not None:

@@ -60,9 +60,3 @@ def test_cli_prints_one_line_and_exits_2(capsys: pytest.CaptureFixture[str], cap
     assert main(["run-scenario", "--episodes", "1", "--set", "scenario.n_avs=-2"]) == 2
     assert "scenario.n_avs: must be > 0" in caplog.text
     assert "Traceback" not in capsys.readouterr().err
-
-
-def test_cli_run_scenario_end_to_end(caplog) -> None:
-    caplog.set_level("INFO")
-    assert main(["run-scenario", "--episodes", "1", "--policy", "scripted", "--set", "scenario.n_hvs=4"]) == 0
-    assert "scripted seed 0" in caplog.text and "merge" in caplog.text
