@@ -1,0 +1,35 @@
+"""Multi-agent A2C for the cosim merge env (paper: Toghi et al., Sections 4-5, Table 1).
+
+Modules: `config` (the `train:` section), `model` (Conv3D actor-critic), `a2c` (GAE, loss, optimizers),
+`multiagent` (per-AV networks, frozen acting copies, semi-sequential learner schedule), `rollout`
+(worker processes, one env each, with restarts), `checkpoint` (atomic save, validated load,
+`load_policy`), `logs` (CSV + TensorBoard), `train` (the loop, `train()`, the `cosim train` arguments),
+`fake_env` (a tiny env with the real one's spaces, for tests and benchmarks).
+
+Entry points: `agents.train.train`, `agents.train.add_train_args` / `run_train`, `agents.load_policy`.
+`agents` meets `cosim` only through `cosim.config`, `cosim.errors` and the env factory `cosim.parallel_env`.
+The names below are imported lazily so that rollout workers (which import `agents.rollout`) skip torch.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_EXPORTS = {
+    "TrainResult": "agents.train",
+    "add_train_args": "agents.train",
+    "run_train": "agents.train",
+    "load_policy": "agents.checkpoint",
+    "CheckpointError": "agents.checkpoint",
+    "TrainConfig": "agents.config",
+    "train_config": "agents.config",
+    "ActorCritic": "agents.model",
+}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'agents' has no attribute {name!r}")

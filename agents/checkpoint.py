@@ -11,7 +11,7 @@ Contract:
   `act(obs (B, F, C, H, W), greedy)` gives actions; `meta` holds the checkpoint's spec, counters and config.
 Payload layout (format "cosim-ma-a2c", version 1): spec {agents, obs_shape, obs_dtype, n_actions,
 shared_policy, feature_dim, head_hidden}, policy (MultiAgentPolicy.state_dict()), counters, rng
-{python, numpy, torch}, train (TrainConfig as a dict), config (Config.to_dict()).
+{python, numpy, torch}, train (TrainConfig as a dict), config (Config.to_dict()), phis (each AV's SVO [rad]).
 """
 
 from __future__ import annotations
@@ -128,5 +128,5 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[dict[str, ActorC
         raise CheckpointError(f"checkpoint {path}: {len(nets)} networks for {len(agents)} agents")
     policies = {a: nets[0 if spec["shared_policy"] else i] for i, a in enumerate(agents)}
     meta = {"path": str(path), "spec": spec, "counters": payload["counters"],
-            "train": payload.get("train", {}), "config": payload.get("config", {})}
+            "train": payload.get("train", {}), "config": payload.get("config", {}), "phis": payload.get("phis")}
     return policies, meta

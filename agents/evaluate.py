@@ -175,8 +175,12 @@ class Runner:
     def __init__(self, job: Job) -> None:
         self.job = job
         self.env = MergeEnv(load_config(job.config))
-        self.chainage = Chainage.from_net(self.env.desc, self.env.road)
-        self.policy = make_policy(job.policy, self.env)
+        try:
+            self.chainage = Chainage.from_net(self.env.desc, self.env.road)
+            self.policy = make_policy(job.policy, self.env)
+        except BaseException:  # e.g. a checkpoint that does not fit: free the process's SUMO slot
+            self.env.close()
+            raise
 
     def run(self, seed: int) -> dict[str, Any]:
         env = self.env
@@ -216,12 +220,10 @@ _RUNNER: Runner | None = None  # the worker process's runner
 
 def _worker_init(job: Job) -> None:
     global _RUNNER
-    try:
+    if job.policy.name == CHECKPOINT:
         import torch
 
         torch.set_num_threads(1)  # W workers on W cores
-    except ImportError:  # pragma: no cover - torch is a dependency
-        pass
     _RUNNER = Runner(job)
 
 
@@ -278,6 +280,9 @@ class RowWriter:
         self.path = path
         self.fields: list[str] | None = None
         if path.is_file() and path.stat().st_size:
+            data = path.read_bytes()
+            if not data.endswith(b"\n"):  # an interrupted write: drop the partial last line
+                path.write_bytes(data[: data.rfind(b"\n") + 1])
             with path.open(newline="") as f:
                 self.fields = next(csv.reader(f), None)
 
@@ -319,11 +324,11 @@ def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed
     Runner(job).close()  # bad nets and checkpoints fail here, before the folder is claimed
     _claim(out_dir, meta, cfg)
     csv_path = out_dir / "episodes.csv"
+    writer = RowWriter(csv_path)  # first: it drops a half-written last row
     done = {int(r["seed"]) for r in read_rows(csv_path)}
     todo = [s for s in seeds if s not in done]
     if done & set(seeds):
         log.info("resuming %s: %d of %d episodes already done", out_dir, len(done & set(seeds)), episodes)
-    writer = RowWriter(csv_path)
     for row in tqdm(run_episodes(job, todo, workers), total=len(todo), desc=f"evaluate {policy.name}",
                     unit="ep", leave=False):
         writer.write(row)

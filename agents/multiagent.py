@@ -17,7 +17,6 @@ from __future__ import annotations
 import copy
 from typing import Any
 
-import numpy as np
 import torch
 
 from agents.a2c import OPTIMIZERS
@@ -100,8 +99,3 @@ def parameters_equal(a: torch.nn.Module, b: torch.nn.Module) -> bool:
     """Whether two networks hold exactly the same parameters and buffers."""
     sa, sb = a.state_dict(), b.state_dict()
     return sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
-
-
-def numpy_actions(actions: torch.Tensor) -> np.ndarray:
-    """(W, N) tensor -> (W, N) int64 array for the workers."""
-    return actions.numpy().astype(np.int64, copy=False)

@@ -107,6 +107,7 @@ class _EnvRunner:
         alive = [a for a in acting if a in self.env.agents and a in obs and not (term.get(a) or trunc.get(a))]
         if alive:
             next_obs, mask = self._pack(obs, alive)
+            episode = None  # only reported when the episode is over
         else:  # episode over: report it and start the next one (seeded by the env's own sequence)
             episode = dict(episode) if episode is not None else {"length": self.length}
             next_obs, mask = self.reset(None)

@@ -46,7 +46,7 @@ from agents.logs import RunLogger
 from agents.multiagent import MultiAgentPolicy
 from agents.rollout import EnvFactory, WorkerPool
 from cosim.config import Config, load_config
-from cosim.errors import ConfigError
+from cosim.errors import ConfigError, SimulationError
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +135,10 @@ def _seed_everything(seed: int) -> None:
 def _default_env_factory(cfg: Config) -> EnvFactory:
     import cosim  # the env factory; imported late so agents/ stays importable without the env
 
-    return functools.partial(cosim.parallel_env, config_to_dict(cfg))
+    factory = getattr(cosim, "parallel_env", None)
+    if factory is None:
+        raise SimulationError("cosim.parallel_env is not available: the env is not installed in this checkout")
+    return functools.partial(factory, config_to_dict(cfg))
 
 
 def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: int | None = None,
@@ -184,7 +187,8 @@ def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: i
 
     def checkpoint() -> None:
         save_checkpoint(ckpt_path, {"spec": spec_dict, "policy": policy.state_dict(), "counters": dict(counters),
-                                    "rng": rng_state(), "train": dataclasses.asdict(tc), "config": config_to_dict(cfg)})
+                                    "rng": rng_state(), "train": dataclasses.asdict(tc), "config": config_to_dict(cfg),
+                                    "phis": list(cfg.phis())})
 
     # Storage, allocated once. T decision steps x W workers x N agents.
     T, W, N = tc.rollout_steps, tc.workers, n_agents
@@ -287,7 +291,8 @@ def _log_episode(logger: RunLogger, n: int, agents: tuple[str, ...], returns: np
 
 def add_train_args(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The `cosim train` options (on a subparser)."""
-    parser.add_argument("--config", required=True, type=Path, help="experiment YAML (e.g. configs/altruistic.yaml)")
+    parser.add_argument("--config", type=Path, default=Path("configs/default.yaml"),
+                        help="experiment YAML (default: %(default)s)")
     parser.add_argument("--out", type=Path, default=None, help="run folder (default: runs/<config stem>)")
     parser.add_argument("--workers", type=int, default=None, help="rollout worker processes (default: train.workers)")
     parser.add_argument("--episodes", type=int, default=None, help="episodes in total (default: train.episodes)")
@@ -310,3 +315,8 @@ def run_train(args: argparse.Namespace) -> int:
     log.info("trained %d episodes (%d updates, %d agent-samples) into %s", result.episodes, result.updates,
              result.samples, result.out_dir)
     return 130 if result.interrupted else 0
+
+
+# The `cosim` CLI's subcommand contract (cosim.cli): `add_arguments(parser)` and `run(args) -> int`.
+add_arguments = add_train_args
+run = run_train

@@ -116,18 +116,24 @@ def training_curves(logs: Mapping[str, Path], path: Path, window: int = 100) -> 
               if any(n in cols for cols in data.values() for n in names)]
     if not panels:
         return None
-    fig = Figure(figsize=(4 * len(panels), 3.2), layout="constrained")
-    axes = fig.subplots(1, len(panels), squeeze=False)[0]
-    for ax, (title, names) in zip(axes, panels, strict=True):
+    ncols = min(2, len(panels))
+    nrows = math.ceil(len(panels) / ncols)
+    fig = Figure(figsize=(5 * ncols, 3.2 * nrows), layout="constrained")
+    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+    for ax in axes[len(panels):]:
+        ax.set_visible(False)
+    for ax, (title, names) in zip(axes, panels, strict=False):
         for i, (label, cols) in enumerate(data.items()):
             name = next((n for n in names if n in cols), None)
             if name is None:
                 continue
             y = cols[name]
             x = cols.get("episode", np.arange(y.size, dtype=float))
-            smooth = _rolling(y, window)
+            ax.plot(x, y, color=f"C{i}", alpha=0.2, lw=0.6)
+            # A short log gets a short window, so its curve is more than a point.
+            smooth = _rolling(y, min(window, max(1, y.size // 5)))
             ax.plot(x[len(x) - smooth.size:], smooth, color=f"C{i}", label=label)
-        ax.set_title(title)
+        ax.set_title(f"{title} (rolling mean)")
         ax.set_xlabel("episode")
     axes[0].legend()
     return _save(fig, path)

@@ -149,3 +149,5 @@ def test_cli_arguments_reach_the_trainer(tmp_path: Path, monkeypatch: pytest.Mon
     assert run_train(args) == 0
     _, meta = load_policy(tmp_path / "run")
     assert meta["train"]["lr"] == 0.01 and meta["train"]["rollout_steps"] == 2 and meta["train"]["workers"] == 1
+    saved = load_config(tmp_path / "run" / "config.yaml")  # the resolved config loads back
+    assert train_config(saved).lr == 0.01 and train_config(saved).episodes == 2

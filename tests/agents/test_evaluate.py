@@ -1,0 +1,162 @@
+"""`cosim evaluate` / `cosim compare` on real SUMO, short: baselines on two nets, a tiny checkpoint, resume,
+bad input, and the report's figures as non-empty PNGs."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.checkpoint import CheckpointError, save_checkpoint
+from agents.compare import compare
+from agents.evaluate import CHECKPOINT, Job, PolicySpec, evaluate, evaluate_config, read_rows, run_episodes
+from agents.model import ActorCritic
+from cosim.cli import main
+from cosim.config import load_config
+from cosim.errors import ConfigError, CosimError, NetError
+from sumo_net.build import run_netconvert
+
+SHORT = ["sim.horizon=8"]
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def _cfg(*extra: str):
+    return load_config("configs/default.yaml", [*SHORT, *extra])
+
+
+def _is_png(path: Path) -> bool:
+    return path.is_file() and path.stat().st_size > 2000 and path.read_bytes()[:8] == PNG
+
+
+@pytest.fixture(scope="module")
+def idle_eval(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("eval") / "idle"
+    evaluate(_cfg(), PolicySpec("idle"), out, episodes=3, seed=100, trajectories=1)
+    return out
+
+
+def test_evaluation_files_and_summary(idle_eval: Path) -> None:
+    rows = read_rows(idle_eval / "episodes.csv")
+    assert [int(r["seed"]) for r in rows] == [100, 101, 102]
+    for key in ("crashed", "crash_av", "crash_hv", "crash_merger", "merged", "time_to_merge", "av_distance",
+                "hv_distance", "merger_distance", "av_speed", "guide_av", "guide_actions", "throughput_vph",
+                "time_loss", "travel_time", "distance_check"):
+        assert key in rows[0], key
+    assert all(float(r["distance_check"]) < 0.01 for r in rows)  # our distance and SUMO's agree
+    assert all(r["guide_av"].startswith("av_") for r in rows)
+    summary = json.loads((idle_eval / "summary.json").read_text())
+    assert summary["episodes"] == 3 and summary["policy"] == "idle"
+    crash = summary["metrics"]["crash [%]"]
+    assert crash["n"] == 3 and 0 <= crash["ci_low"] <= crash["mean"] <= crash["ci_high"] <= 100
+    assert summary["metrics"]["throughput [veh/h]"]["mean"] > 0
+    assert (idle_eval / "trajectories" / "seed_100.npz").is_file()
+    assert not (idle_eval / "trajectories" / "seed_101.npz").exists()
+    for name in ("merger_distance.png", "timespace_seed_100.png", "topview_seed_100.png"):
+        assert _is_png(idle_eval / "plots" / name), name
+
+
+def test_resume_skips_done_episodes_and_drops_a_partial_row(idle_eval: Path, tmp_path: Path) -> None:
+    out = tmp_path / "resumed"
+    shutil.copytree(idle_eval, out)
+    lines = (out / "episodes.csv").read_text().splitlines(keepends=True)
+    (out / "episodes.csv").write_text("".join(lines[:3]) + lines[3][:25])  # interrupted mid-row of seed 102
+    evaluate(_cfg(), PolicySpec("idle"), out, episodes=4, seed=100, trajectories=0, plots=False)
+    rows = read_rows(out / "episodes.csv")
+    assert [int(r["seed"]) for r in rows] == [100, 101, 102, 103]
+    original = read_rows(idle_eval / "episodes.csv")
+    assert rows[2]["mean_distance"] == original[2]["mean_distance"]  # re-run deterministically
+    with pytest.raises(CosimError, match="other policy"):
+        evaluate(_cfg(), PolicySpec("random"), out, episodes=1, seed=100, plots=False)
+
+
+@pytest.mark.parametrize("net", ["default", "two_lane"])
+@pytest.mark.parametrize("policy", ["sumo", "random"])
+def test_baselines_on_two_nets(net: str, policy: str, two_lane_net: Path, tmp_path: Path) -> None:
+    extra = [f"net.file={two_lane_net}", "scenario.n_hvs=6"] if net == "two_lane" else []
+    summary = evaluate(_cfg(*extra), PolicySpec(policy), tmp_path, episodes=2, seed=7, trajectories=0,
+                       plots=False)
+    assert summary["episodes"] == 2 and math.isfinite(summary["metrics"]["mean distance [m]"]["mean"])
+    if policy == "sumo":
+        assert read_rows(tmp_path / "episodes.csv")[0]["guide_actions"] == ""  # SUMO drives: no actions
+
+
+def test_workers_give_the_same_rows(tmp_path: Path) -> None:
+    job = Job(_cfg("sim.outputs=true", f"sim.output_dir={tmp_path}").to_dict(), PolicySpec("random"),
+              str(tmp_path), frozenset())
+    one = sorted(run_episodes(job, [1, 2], workers=1), key=lambda r: r["seed"])
+    two = sorted(run_episodes(job, [1, 2], workers=2), key=lambda r: r["seed"])
+    assert [r["mean_distance"] for r in one] == [r["mean_distance"] for r in two]
+
+
+def _tiny_checkpoint(path: Path, obs_shape: tuple[int, ...]) -> None:
+    net = ActorCritic(obs_shape, 5, feature_dim=8, head_hidden=8)
+    spec = {"agents": [f"av_{i}" for i in range(4)], "obs_shape": list(obs_shape), "obs_dtype": "float32",
+            "n_actions": 5, "shared_policy": True, "feature_dim": 8, "head_hidden": 8}
+    save_checkpoint(path, {"spec": spec, "policy": {"nets": [net.state_dict()]}, "counters": {}, "rng": {}})
+
+
+def test_checkpoint_policy_and_a_mismatched_one(tmp_path: Path) -> None:
+    cfg = _cfg()
+    shape = (cfg.observation.frames, len(cfg.observation.channels), cfg.observation.height_px,
+             cfg.observation.width_px)
+    good, bad = tmp_path / "good.pt", tmp_path / "bad.pt"
+    _tiny_checkpoint(good, shape)
+    _tiny_checkpoint(bad, (shape[0] + 1, *shape[1:]))
+    summary = evaluate(cfg, PolicySpec(CHECKPOINT, str(good), greedy=False), tmp_path / "ev", episodes=2, seed=5,
+                       trajectories=0, plots=False)
+    assert summary["episodes"] == 2 and summary["greedy"] is False
+    actions = read_rows(tmp_path / "ev" / "episodes.csv")[0]["guide_actions"].split()
+    assert actions and all(0 <= int(a) < 5 for a in actions)
+    with pytest.raises(CheckpointError, match="observations of shape"):
+        evaluate(cfg, PolicySpec(CHECKPOINT, str(bad)), tmp_path / "ev_bad", episodes=1, plots=False)
+    assert not (tmp_path / "ev_bad" / "evaluation.json").exists()  # a failed start claims no folder
+
+
+def test_bad_input_is_a_clear_error(tmp_path: Path, two_lane_net: Path, caplog) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text("sim:\n  horizon: 5\n")
+    assert main(["evaluate", "--run", str(run), "--episodes", "1"]) == 2
+    assert "checkpoint" in caplog.text and "not found" in caplog.text
+    assert main(["evaluate", "--run", str(tmp_path / "nothing")]) == 2
+    with pytest.raises(ConfigError, match="evaluate.episode"):
+        evaluate_config({"episode": 3})
+    # A net without a merge: the 2-lane net with its ramp taken out.
+    for name in ("merge.nod.xml", "merge.edg.xml", "merge.con.xml"):
+        shutil.copy(two_lane_net.with_name(name), tmp_path / name)
+    for name, key in (("merge.edg.xml", 'id="ramp"'), ("merge.con.xml", 'from="ramp"')):
+        f = tmp_path / name
+        f.write_text("\n".join(line for line in f.read_text().splitlines() if key not in line))
+    straight = run_netconvert(tmp_path, "merge")
+    with pytest.raises(NetError, match="cannot infer"):
+        evaluate(_cfg(f"net.file={straight}"), PolicySpec("idle"), tmp_path / "ev", episodes=1, plots=False)
+
+
+def test_cli_evaluate_and_compare_report(idle_eval: Path, tmp_path: Path, capsys) -> None:
+    sumo_out = tmp_path / "sumo"
+    assert main(["evaluate", "--policy", "sumo", "--episodes", "2", "--seed", "100", "--trajectories", "1",
+                 "--set", "sim.horizon=8", "--out", str(sumo_out)]) == 0
+    assert "crash [%]" in capsys.readouterr().out
+    # A run folder with the trainer's log and its evaluation in eval/.
+    run = tmp_path / "run_a"
+    shutil.copytree(idle_eval, run / "eval")
+    with (run / "episodes.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["episode", "return_mean", "crashed", "merged", "mean_distance"])
+        for i in range(50):
+            w.writerow([i, np.sin(i / 5), i % 2, 1, 100 + i])
+    report = tmp_path / "report"
+    assert main(["compare", str(run), str(sumo_out), "--out", str(report), "--labels", "egoistic", "human"]) == 0
+    text = (report / "report.md").read_text()
+    assert "| crash [%]" in text and "egoistic (n=3)" in text and "human (n=2)" in text
+    for name in ("bars.png", "merger_distance.png", "training_curves.png", "egoistic/timespace_seed_100.png",
+                 "human/topview_seed_100.png"):
+        assert _is_png(report / name), name
+        assert f"({name})" in text
+    with pytest.raises(CosimError, match="no evaluation"):
+        compare([tmp_path / "nothing"], report)

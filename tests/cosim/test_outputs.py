@@ -1,0 +1,121 @@
+"""SUMO's own outputs: file writing and parsing, and agreement with our snapshots on real SUMO."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+import cosim
+from cosim.errors import SimulationError
+from cosim.metrics import Chainage, EpisodeTracker, crossings
+from cosim.netdesc import load_net_description
+from cosim.outputs import (
+    DETECTOR_FILE,
+    TRIPINFO_FILE,
+    detector_site,
+    episode_output_args,
+    read_detectors,
+    read_episode_outputs,
+    read_tripinfo,
+)
+from cosim.policies import POLICIES
+from cosim.roadnet import load_roadnet
+
+TRIPS = """<tripinfos>
+    <tripinfo id="a" duration="20.00" routeLength="500.00" timeLoss="2.00" vaporized=""/>
+    <tripinfo id="b" duration="10.00" routeLength="100.50" timeLoss="4.00" vaporized="traci"/>
+</tripinfos>
+"""
+LOOPS = """<detector>
+    <interval begin="0.00" end="20.00" id="loop_0" nVehContrib="3" nVehEntered="4"/>
+    <interval begin="0.00" end="20.00" id="loop_1" nVehContrib="2" nVehEntered="2"/>
+</detector>
+"""
+
+
+def test_parse_hand_written_outputs(tmp_path: Path) -> None:
+    (tmp_path / TRIPINFO_FILE).write_text(TRIPS)
+    (tmp_path / DETECTOR_FILE).write_text(LOOPS)
+    assert read_detectors(tmp_path / DETECTOR_FILE) == 6
+    assert [t["id"] for t in read_tripinfo(tmp_path / TRIPINFO_FILE)] == ["a", "b"]
+    out = read_episode_outputs(tmp_path, duration=20.0)
+    assert out.detector_count == 6 and out.throughput_vph == pytest.approx(6 * 3600 / 20)
+    assert out.travel_time == 15.0 and out.time_loss == 3.0 and out.n_trips == 2
+    assert out.distance == {"a": 500.0, "b": 100.5}
+
+
+def test_incomplete_or_missing_outputs_are_clear_errors(tmp_path: Path) -> None:
+    (tmp_path / TRIPINFO_FILE).write_text(TRIPS[:80])
+    (tmp_path / DETECTOR_FILE).write_text(LOOPS)
+    with pytest.raises(SimulationError, match="incomplete"):
+        read_episode_outputs(tmp_path, 20.0)
+    with pytest.raises(SimulationError, match="not found"):
+        read_detectors(tmp_path / "nope.xml")
+
+
+def test_detectors_cover_every_lane_of_the_last_highway_edge(two_lane_net: Path, tmp_path: Path) -> None:
+    road = load_roadnet(two_lane_net)
+    desc = load_net_description(road)
+    site = detector_site(desc, road, offset=1e6)  # clipped into the edge
+    last = desc.highway[-1]
+    assert site.edge == last and len(site.lanes) == road.num_lanes(last)
+    assert site.pos < road.edge_length(last)
+    assert site.chainage == pytest.approx(Chainage.from_net(desc, road).highway_end - road.edge_length(last)
+                                          + site.pos)
+    args = episode_output_args(tmp_path / "ep", site)
+    text = (tmp_path / "ep" / "detectors.add.xml").read_text()
+    assert all(f'lane="{lane}"' in text for lane in site.lanes) and "--tripinfo-output" in args
+
+
+@pytest.mark.parametrize("net", ["default", "two_lane"])
+def test_sumo_throughput_agrees_with_our_snapshots(net: str, two_lane_net: Path, tmp_path: Path) -> None:
+    overrides = {"sim.outputs": True, "sim.output_dir": str(tmp_path), "sim.horizon": 15.0}
+    if net == "two_lane":
+        overrides.update({"net.file": str(two_lane_net), "scenario.n_hvs": 6, "sim.detector_offset": 40.0})
+    env = cosim.parallel_env("configs/default.yaml", overrides)
+    try:
+        chain = Chainage.from_net(env.desc, env.road)
+        policy = POLICIES["scripted"](0)
+        tracks = {}
+        for seed in (3, 4, 5):
+            env.reset(seed=seed)
+            if seed - 1 in tracks:  # the reload completed the previous episode's files
+                assert seed - 1 in env.sumo_outputs
+            tr = EpisodeTracker(env.zone, chain, record=True)
+            tr.observe(env.snapshot)
+            while env.agents:
+                actions = policy(env)
+                env.step(actions)
+                tr.observe(env.snapshot, actions)
+            tracks[seed] = tr
+        assert 5 not in env.sumo_outputs  # still open until close
+    finally:
+        env.close()
+    for seed, tr in tracks.items():
+        out = env.sumo_outputs[seed]
+        assert (tmp_path / f"episode_{seed}" / TRIPINFO_FILE).is_file()
+        assert out.detector_count == crossings(tr.trajectory(), env.detectors.chainage) > 0
+        assert out.throughput_vph == pytest.approx(out.detector_count * 3600 / tr.time)
+        assert out.n_trips == len(tr.distance)
+        for vid, d in tr.distance.items():  # our odometer and SUMO's routeLength (2 decimals in the file)
+            assert out.distance[vid] == pytest.approx(d, abs=0.01)
+
+
+def test_sumo_drives_the_avs_when_asked(tmp_path: Path) -> None:
+    env = cosim.parallel_env("configs/default.yaml", {"sim.av_driver": "sumo", "sim.outputs": True,
+                                                     "sim.horizon": 10.0})
+    try:
+        for seed in (0, 1):
+            env.reset(seed=seed)
+            infos: dict = {}
+            while env.agents:
+                # Hard braking orders would stop env-driven AVs; SUMO ignores them.
+                _, _, _, _, infos = env.step(dict.fromkeys(env.agents, 4))
+            assert not next(iter(infos.values()))["episode"]["crashed"]
+            snap = env.snapshot
+            assert snap.speed[snap.rows_of(env.possible_agents)].min() > 10.0
+            env.flush_outputs()
+            assert env.sumo_outputs[seed].n_trips == len(env.possible_agents) + 13
+    finally:
+        env.close()
