@@ -16,9 +16,7 @@ shared_policy, feature_dim, head_hidden}, policy (MultiAgentPolicy.state_dict())
 
 from __future__ import annotations
 
-import os
 import random
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +25,7 @@ import torch
 
 from agents.model import ActorCritic
 from cosim.errors import CosimError
+from cosim.files import atomic_path
 
 FORMAT, VERSION = "cosim-ma-a2c", 1
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -37,17 +36,8 @@ class CheckpointError(CosimError):
 
 
 def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save({"format": FORMAT, "version": VERSION, **payload}, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp:
+        torch.save({"format": FORMAT, "version": VERSION, **payload}, tmp)
 
 
 def read_checkpoint(path: Path, expect: dict[str, Any] | None = None) -> dict[str, Any]:

@@ -17,8 +17,6 @@ import csv
 import io
 import json
 import logging
-import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +28,7 @@ from agents.evaluate import load_trajectory, read_rows, trajectory_files
 from cosim import plots
 from cosim.config import load_config
 from cosim.errors import CosimError
+from cosim.files import atomic_write_text
 from cosim.metrics import SUMMARY_METRICS, format_table, summarize
 from cosim.roadnet import load_roadnet
 
@@ -84,14 +83,6 @@ def _column(eval_dir: Path, name: str) -> list[float]:
     return values
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
-
-
 def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = None) -> dict[str, Any]:
     """Write the comparison report into `out_dir`; returns {label: summary}."""
     if labels is not None and len(labels) != len(dirs):
@@ -118,9 +109,9 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
         per_run[e.label] = plot_run(e.eval_dir, out_dir / e.label, e.label, histogram=False)
     result = {e.label: {**e.summary, "episodes": episodes[e.label], "metrics": metrics[e.label],
                         "eval_dir": str(e.eval_dir)} for e in evals}
-    _atomic_write(out_dir / "summary.json", json.dumps(result, indent=2) + "\n")
-    _atomic_write(out_dir / "summary.csv", _summary_csv(metrics))
-    _atomic_write(out_dir / "report.md", _report(evals, metrics, episodes, figures, per_run, out_dir))
+    atomic_write_text(out_dir / "summary.json", json.dumps(result, indent=2) + "\n")
+    atomic_write_text(out_dir / "summary.csv", _summary_csv(metrics))
+    atomic_write_text(out_dir / "report.md", _report(evals, metrics, episodes, figures, per_run, out_dir))
     return result
 
 

@@ -8,13 +8,11 @@ workers and the CLI can read it cheaply.
 
 from __future__ import annotations
 
-import dataclasses
-import typing
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from cosim.config import Config
+from cosim.config import Config, parse_section
 from cosim.errors import ConfigError
 
 OPTIMIZER_NAMES = ("adam", "rmsprop")  # keys of agents.a2c.OPTIMIZERS
@@ -58,37 +56,9 @@ _UNIT_INTERVAL = ("gamma", "gae_lambda")
 
 def train_config(source: Config | Mapping[str, Any] | None) -> TrainConfig:
     """Validate `cfg.train` (or a raw mapping) into a `TrainConfig`."""
-    data = source.train if isinstance(source, Config) else (source or {})
-    if not isinstance(data, Mapping):
-        raise ConfigError(f"train: expected a mapping, got {type(data).__name__}")
-    fields = {f.name: f for f in dataclasses.fields(TrainConfig)}
-    hints = typing.get_type_hints(TrainConfig)
-    kwargs: dict[str, Any] = {}
-    for key, value in data.items():
-        if key not in fields:
-            raise ConfigError(f"config key train.{key}: unknown; expected one of {sorted(fields)}")
-        kwargs[key] = _coerce(hints[key], value, f"train.{key}")
-    tc = TrainConfig(**kwargs)
+    tc = parse_section(TrainConfig, source.train if isinstance(source, Config) else source, "train")
     _validate(tc)
     return tc
-
-
-def _coerce(tp: Any, value: Any, where: str) -> Any:
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where}: expected true or false, got {value!r}")
-        return value
-    if isinstance(value, bool):
-        raise ConfigError(f"{where}: expected a {tp.__name__}, got {value!r}")
-    if tp is int and not isinstance(value, int):
-        raise ConfigError(f"{where}: expected an integer, got {value!r}")
-    if tp is float:
-        if not isinstance(value, int | float):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
-        return float(value)
-    if tp is str and not isinstance(value, str):
-        raise ConfigError(f"{where}: expected a string, got {value!r}")
-    return value
 
 
 def _validate(tc: TrainConfig) -> None:
@@ -114,21 +84,3 @@ def check_device(device: str, where: str) -> None:
     kind, _, index = device.partition(":")
     if kind not in ("cpu", "cuda") or (index and (kind != "cuda" or not index.isdigit())):
         raise ConfigError(f"{where}: expected cpu, cuda or cuda:N, got {device!r}")
-
-
-def config_to_dict(cfg: Config) -> dict[str, Any]:
-    """`cfg.to_dict()`'s plain-dict form, built without deep-copying: read-only mapping sections
-    (`types.MappingProxyType`, as `load_config` makes `train:`) cannot be deep-copied by `dataclasses.asdict`."""
-    out = _plain(cfg)
-    out.pop("source", None)
-    return out
-
-
-def _plain(value: Any) -> Any:
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, Mapping):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_plain(v) for v in value]
-    return value

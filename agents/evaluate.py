@@ -24,13 +24,10 @@ from __future__ import annotations
 
 import argparse
 import csv
-import dataclasses
 import json
 import logging
 import math
 import multiprocessing as mp
-import os
-import tempfile
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,10 +38,11 @@ import yaml
 from tqdm import tqdm
 
 from cosim.cli import add_config_arguments
-from cosim.config import Config, load_config
+from cosim.config import Config, load_config, parse_section
 from cosim.control import Action
 from cosim.env import MergeEnv
 from cosim.errors import ConfigError, CosimError
+from cosim.files import AppendCsv, atomic_path, atomic_write_text
 from cosim.metrics import Chainage, EpisodeTracker, format_table, summarize
 from cosim.policies import POLICIES
 
@@ -74,18 +72,7 @@ class EvaluateConfig:
 
 def evaluate_config(section: Mapping[str, Any]) -> EvaluateConfig:
     """Validate the `evaluate:` section; unknown keys and wrong types raise `ConfigError`."""
-    fields = {f.name: f.type for f in dataclasses.fields(EvaluateConfig)}
-    kwargs = {}
-    for key, value in section.items():
-        if key not in fields:
-            raise ConfigError(f"config key evaluate.{key}: unknown; expected one of {sorted(fields)}")
-        want = {"int": int, "bool": bool, "float": float}[str(fields[key])]
-        if want is float and isinstance(value, int) and not isinstance(value, bool):
-            value = float(value)
-        if not isinstance(value, want) or (want is int and isinstance(value, bool)):
-            raise ConfigError(f"evaluate.{key}: expected {want.__name__}, got {value!r}")
-        kwargs[key] = value
-    ec = EvaluateConfig(**kwargs)
+    ec = parse_section(EvaluateConfig, section, "evaluate")
     if ec.episodes < 1 or ec.workers < 1 or ec.trajectories < 0 or not 0 < ec.confidence < 1:
         raise ConfigError("evaluate: need episodes >= 1, workers >= 1, trajectories >= 0, 0 < confidence < 1")
     return ec
@@ -248,20 +235,9 @@ def run_episodes(job: Job, seeds: Sequence[int], workers: int = 1) -> Iterator[d
 
 
 # -- files ---------------------------------------------------------------------------------------------
-def _atomic_write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
-
-
 def _save_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz", dir=path.parent)
-    with os.fdopen(fd, "wb") as f:
-        np.savez_compressed(f, **arrays)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        np.savez_compressed(tmp, **arrays)
 
 
 def read_rows(path: Path) -> list[dict[str, str]]:
@@ -271,31 +247,6 @@ def read_rows(path: Path) -> list[dict[str, str]]:
     with path.open(newline="") as f:
         rows = list(csv.DictReader(f))
     return [r for r in rows if r.get("seed") and None not in r.values()]
-
-
-class RowWriter:
-    """Appends rows to episodes.csv, flushed per row; keeps the header of an existing file."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.fields: list[str] | None = None
-        if path.is_file() and path.stat().st_size:
-            data = path.read_bytes()
-            if not data.endswith(b"\n"):  # an interrupted write: drop the partial last line
-                path.write_bytes(data[: data.rfind(b"\n") + 1])
-            with path.open(newline="") as f:
-                self.fields = next(csv.reader(f), None)
-
-    def write(self, row: Mapping[str, Any]) -> None:
-        new = self.fields is None
-        if new:
-            self.fields = list(row)
-        with self.path.open("a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=self.fields, extrasaction="ignore")
-            if new:
-                writer.writeheader()
-            writer.writerow(dict(row))
-            f.flush()
 
 
 def trajectory_files(out_dir: Path) -> list[Path]:
@@ -324,7 +275,7 @@ def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed
     Runner(job).close()  # bad nets and checkpoints fail here, before the folder is claimed
     _claim(out_dir, meta, cfg)
     csv_path = out_dir / "episodes.csv"
-    writer = RowWriter(csv_path)  # first: it drops a half-written last row
+    writer = AppendCsv(csv_path)  # first: it drops a half-written last row
     done = {int(r["seed"]) for r in read_rows(csv_path)}
     todo = [s for s in seeds if s not in done]
     if done & set(seeds):
@@ -338,7 +289,7 @@ def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed
     summary = {**meta, "episodes": len(rows), "first_seed": seed, "confidence": confidence,
                "metrics": summarize(rows, confidence),
                "distance_check_max_m": max(checks) if checks else math.nan}
-    _atomic_write(out_dir / "summary.json", json.dumps(summary, indent=2, allow_nan=True) + "\n")
+    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2, allow_nan=True) + "\n")
     if checks and max(checks) > 0.5:
         log.warning("our distances and SUMO's tripinfo differ by up to %.2f m", max(checks))
     if plots:
@@ -359,8 +310,8 @@ def _claim(out_dir: Path, meta: dict[str, Any], cfg: Config) -> None:
                              f"({', '.join(f'{k}={old.get(k)!r}' for k in differs)}); choose another --out")
         return
     out_dir.mkdir(parents=True, exist_ok=True)
-    _atomic_write(out_dir / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False))
-    _atomic_write(path, json.dumps(meta, indent=2) + "\n")
+    atomic_write_text(out_dir / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    atomic_write_text(path, json.dumps(meta, indent=2) + "\n")
 
 
 def print_summary(summary: Mapping[str, Any], label: str) -> None:

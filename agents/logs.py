@@ -9,37 +9,19 @@ left empty). `recent` keeps the last 100 episodes for the progress bar's crash /
 
 from __future__ import annotations
 
-import csv
 from collections import deque
 from pathlib import Path
 from typing import Any
 
 from torch.utils.tensorboard import SummaryWriter
 
-
-class _Csv:
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self.fields: list[str] | None = None
-        if path.is_file() and path.stat().st_size > 0:
-            with path.open(newline="") as f:
-                self.fields = next(csv.reader(f), None)
-
-    def write(self, row: dict[str, Any]) -> None:
-        new = self.fields is None
-        if new:
-            self.fields = list(row)
-        with self.path.open("a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=self.fields, extrasaction="ignore")
-            if new:
-                writer.writeheader()
-            writer.writerow(row)
+from cosim.files import AppendCsv
 
 
 class RunLogger:
     def __init__(self, out_dir: Path, window: int = 100) -> None:
-        self.updates = _Csv(out_dir / "updates.csv")
-        self.episodes = _Csv(out_dir / "episodes.csv")
+        self.updates = AppendCsv(out_dir / "updates.csv")
+        self.episodes = AppendCsv(out_dir / "episodes.csv")
         self.tb = SummaryWriter(str(out_dir / "tb"))
         self.recent: deque[dict[str, Any]] = deque(maxlen=window)
 

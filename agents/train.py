@@ -41,7 +41,7 @@ from agents.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
-from agents.config import TrainConfig, check_device, config_to_dict, train_config
+from agents.config import TrainConfig, check_device, train_config
 from agents.logs import RunLogger
 from agents.multiagent import MultiAgentPolicy
 from agents.rollout import EnvFactory, WorkerPool
@@ -138,7 +138,7 @@ def _default_env_factory(cfg: Config) -> EnvFactory:
     factory = getattr(cosim, "parallel_env", None)
     if factory is None:
         raise SimulationError("cosim.parallel_env is not available: the env is not installed in this checkout")
-    return functools.partial(factory, config_to_dict(cfg))
+    return functools.partial(factory, cfg.to_dict())
 
 
 def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: int | None = None,
@@ -163,7 +163,7 @@ def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: i
     if payload is not None:
         counters.update({k: int(v) for k, v in payload["counters"].items() if k in counters})
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "config.yaml").write_text(yaml.safe_dump({**config_to_dict(cfg), "train": dataclasses.asdict(tc)},
+    (out_dir / "config.yaml").write_text(yaml.safe_dump({**cfg.to_dict(), "train": dataclasses.asdict(tc)},
                                                         sort_keys=False))
     _seed_everything(tc.seed)
     pool = WorkerPool(env_factory or _default_env_factory(cfg), tc.workers, seed=tc.seed + counters["updates"],
@@ -187,7 +187,7 @@ def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: i
 
     def checkpoint() -> None:
         save_checkpoint(ckpt_path, {"spec": spec_dict, "policy": policy.state_dict(), "counters": dict(counters),
-                                    "rng": rng_state(), "train": dataclasses.asdict(tc), "config": config_to_dict(cfg),
+                                    "rng": rng_state(), "train": dataclasses.asdict(tc), "config": cfg.to_dict(),
                                     "phis": list(cfg.phis())})
 
     # Storage, allocated once. T decision steps x W workers x N agents.

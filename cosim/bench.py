@@ -3,7 +3,7 @@
 (a) bare: `simulationStep` x one decision period + one read of every vehicle's state (plain getters, and
     subscriptions for comparison); (b) env.step with random actions, default preset; (c) the same with the
     `paper` preset; (d) env.reset vs a bare `libsumo.load`. Prints agent-decisions/s, b/a, c/a, reset ratio,
-    and memory per observation and per stored transition. With `--train`, hands over to the trainer's bench.
+    and memory per observation and per stored transition. Training speed: scripts/bench_train.py.
 """
 
 from __future__ import annotations
@@ -28,16 +28,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser)
     parser.add_argument("--episodes", type=int, default=20, help="episodes per measurement")
     parser.add_argument("--resets", type=int, default=40, help="resets per measurement")
-    parser.add_argument("--train", action="store_true", help="benchmark training instead (agents bench)")
 
 
-def _env_rate(env: MergeEnv, episodes: int) -> tuple[float, float]:
-    """(seconds per env.step, agent-decisions per second) with random actions; resets not timed."""
+def _env_rate(env: MergeEnv, episodes: int, keep_routes: Path | None = None) -> tuple[float, float]:
+    """(seconds per env.step, agent-decisions per second) with random actions; resets not timed.
+    With `keep_routes`, each episode's route file is kept there for the bare loop to replay."""
     rng = np.random.default_rng(0)
     n_steps = n_agents = 0
     dt = 0.0
     for ep in range(episodes):
         env.reset(seed=ep)
+        if keep_routes is not None:
+            shutil.copy(env.route_file, keep_routes / f"episode_{ep}.rou.xml")
         t0 = time.perf_counter()
         while env.agents:
             n_agents += len(env.agents)
@@ -54,18 +56,21 @@ def _reset_time(env: MergeEnv, resets: int) -> float:
     return (time.perf_counter() - t0) / resets
 
 
-def _bare(args: list[str], steps_per_decision: int, decisions: int, episodes: int,
+def _bare(base_args: list[str], routes: Path, steps_per_decision: int, decisions: int, episodes: int,
           resets: int) -> dict[str, float]:
-    """Seconds per decision of a bare loop over the same episode (same routes, same horizon)."""
+    """Seconds per decision of a bare loop over the env's episodes (same vehicles, seeds and horizon)."""
     import libsumo as ls
 
-    ls.start(["sumo", *args])
+    def args(ep: int) -> list[str]:
+        return [*base_args, "-r", str(routes / f"episode_{ep}.rou.xml"), "--seed", str(ep)]
+
+    ls.start(["sumo", *args(0)])
     out = {}
     try:
         def run(read) -> float:
             dt = 0.0
-            for _ in range(episodes):
-                ls.load(args)
+            for ep in range(episodes):
+                ls.load(args(ep))
                 ls.simulationStep()
                 t0 = time.perf_counter()
                 for _ in range(decisions):
@@ -94,8 +99,8 @@ def _bare(args: list[str], steps_per_decision: int, decisions: int, episodes: in
 
         out["subscriptions"] = run(subscribed)
         t0 = time.perf_counter()
-        for _ in range(resets):
-            ls.load(args)
+        for k in range(resets):
+            ls.load(args(k % episodes))
         out["load"] = (time.perf_counter() - t0) / resets
     finally:
         ls.close()
@@ -103,10 +108,6 @@ def _bare(args: list[str], steps_per_decision: int, decisions: int, episodes: in
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.train:
-        from agents.bench import run as train_bench
-
-        return train_bench(args)
     cfg = load_config(args.config, args.overrides)
     tmp = Path(tempfile.mkdtemp(prefix="cosim_bench_"))
     try:
@@ -115,17 +116,14 @@ def run(args: argparse.Namespace) -> int:
             sizes = {f"observation.{k}": v for k, v in OBSERVATION_PRESETS[preset].items()}
             env = MergeEnv(load_config(cfg, {"observation.preset": preset, **sizes}))
             try:
-                step_s, rate = _env_rate(env, args.episodes)
+                step_s, rate = _env_rate(env, args.episodes, tmp if preset == "default" else None)
                 results[preset] = (step_s, rate, env.mapper.shape, env.mapper.dtype)
                 if preset == "default":
                     reset_s = _reset_time(env, args.resets)
-                    env.reset(seed=0)
-                    shutil.copy(env.route_file, tmp / "episode.rou.xml")
-                    sumo_args = [*env.session.args, "-r", str(tmp / "episode.rou.xml"), "--seed", "0"]
-                    decisions = env.max_steps
+                    sumo_args, decisions = list(env.session.args), env.max_steps
             finally:
                 env.close()
-        bare = _bare(sumo_args, cfg.steps_per_decision, decisions, args.episodes, args.resets)
+        bare = _bare(sumo_args, tmp, cfg.steps_per_decision, decisions, args.episodes, args.resets)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     a = min(bare["getters"], bare["subscriptions"])

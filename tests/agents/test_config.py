@@ -2,7 +2,7 @@
 
 import pytest
 
-from agents.config import TrainConfig, config_to_dict, train_config
+from agents.config import TrainConfig, train_config
 from cosim.config import load_config
 from cosim.errors import ConfigError
 
@@ -39,5 +39,5 @@ def test_bad_keys_and_values_name_the_key(train: dict, message: str) -> None:
 
 def test_config_to_dict_round_trips_with_a_train_section() -> None:
     cfg = load_config({"train": {"lr": 0.001}, "reward": {"phi": 0.785}})
-    again = load_config(config_to_dict(cfg))
+    again = load_config(cfg.to_dict())
     assert again == cfg

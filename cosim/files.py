@@ -1,0 +1,59 @@
+"""Writing results so that a failed or interrupted run loses nothing a user already has.
+
+Contract: `atomic_path(path)` yields a temporary path beside `path` that replaces it only once the body
+succeeded (a reader sees the old file or the new one, never half of one); `atomic_write_text` is its
+text shortcut. `AppendCsv` appends rows flushed one by one, keeps an existing file's header, and drops a
+half-written last line left by an interrupted run, so runs can resume.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import tempfile
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+
+@contextmanager
+def atomic_path(path: Path) -> Iterator[Path]:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        with open(tmp, "rb") as f:  # on disk before it takes the old file's place
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+class AppendCsv:
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.fields: list[str] | None = None
+        if path.is_file() and path.stat().st_size:
+            data = path.read_bytes()
+            if not data.endswith(b"\n"):  # an interrupted write: drop the partial last line
+                path.write_bytes(data[: data.rfind(b"\n") + 1])
+            with path.open(newline="") as f:
+                self.fields = next(csv.reader(f), None)
+
+    def write(self, row: Mapping[str, Any]) -> None:
+        new = self.fields is None
+        if new:
+            self.fields = list(row)
+        with self.path.open("a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=self.fields, extrasaction="ignore")
+            if new:
+                writer.writeheader()
+            writer.writerow(dict(row))
