@@ -6,8 +6,8 @@ Modules: `config` (the `train:` section), `model` (Conv3D actor-critic), `a2c` (
 `load_policy`), `logs` (CSV + TensorBoard), `train` (the loop, `train()`, the `cosim train` arguments),
 `fake_env` (a tiny env with the real one's spaces, for tests and benchmarks).
 
-Entry points: `agents.train.train`, `agents.train.add_train_args` / `run_train`, `agents.load_policy`.
-`agents` meets `cosim` only through `cosim.config`, `cosim.errors` and the env factory `cosim.parallel_env`.
+Entry points: `agents.train.train`, `agents.train.add_arguments` / `run` (`cosim train`), `agents.load_policy`.
+`agents` never imports libsumo: it meets `cosim` through its config, errors, files and the PettingZoo env.
 The names below are imported lazily so that rollout workers (which import `agents.rollout`) skip torch.
 """
 
@@ -18,8 +18,6 @@ from typing import Any
 
 _EXPORTS = {
     "TrainResult": "agents.train",
-    "add_train_args": "agents.train",
-    "run_train": "agents.train",
     "load_policy": "agents.checkpoint",
     "CheckpointError": "agents.checkpoint",
     "TrainConfig": "agents.config",

@@ -4,7 +4,7 @@ Contract: `train(cfg, out_dir, ...)` trains the AVs of `cfg` until `episodes` ep
 total, writing into `out_dir`: `config.yaml` (the resolved config), `checkpoint.pt` (every
 `train.checkpoint_every` updates, at the end, and on Ctrl-C), `updates.csv`, `episodes.csv` and TensorBoard
 files under `tb/`. `resume=True` continues the run in `out_dir` from its checkpoint (same parameters,
-optimizer state, RNG states and counters). It returns a `TrainResult`. `add_train_args` / `run_train`
+optimizer state, RNG states and counters). It returns a `TrainResult`. `add_arguments` / `run`
 are the argparse pair behind `cosim train`.
 
 One update: every worker steps its env `rollout_steps` times with all AVs acting (the learner AV with
@@ -45,8 +45,9 @@ from agents.config import TrainConfig, check_device, train_config
 from agents.logs import RunLogger
 from agents.multiagent import MultiAgentPolicy
 from agents.rollout import EnvFactory, WorkerPool
+from cosim.cli import add_config_arguments
 from cosim.config import Config, load_config
-from cosim.errors import ConfigError, SimulationError
+from cosim.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -133,12 +134,9 @@ def _seed_everything(seed: int) -> None:
 
 
 def _default_env_factory(cfg: Config) -> EnvFactory:
-    import cosim  # the env factory; imported late so agents/ stays importable without the env
+    from cosim.env import parallel_env  # the meeting point of agents/ and cosim/, through PettingZoo
 
-    factory = getattr(cosim, "parallel_env", None)
-    if factory is None:
-        raise SimulationError("cosim.parallel_env is not available: the env is not installed in this checkout")
-    return functools.partial(factory, cfg.to_dict())
+    return functools.partial(parallel_env, cfg.to_dict())
 
 
 def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: int | None = None,
@@ -289,21 +287,18 @@ def _log_episode(logger: RunLogger, n: int, agents: tuple[str, ...], returns: np
     logger.episode(n, row)
 
 
-def add_train_args(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """The `cosim train` options (on a subparser)."""
-    parser.add_argument("--config", type=Path, default=Path("configs/default.yaml"),
-                        help="experiment YAML (default: %(default)s)")
+def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The `cosim train` options."""
+    add_config_arguments(parser)
     parser.add_argument("--out", type=Path, default=None, help="run folder (default: runs/<config stem>)")
     parser.add_argument("--workers", type=int, default=None, help="rollout worker processes (default: train.workers)")
     parser.add_argument("--episodes", type=int, default=None, help="episodes in total (default: train.episodes)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
     parser.add_argument("--device", default=None, help="cpu | cuda | cuda:N (default: train.device)")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config key, e.g. --set reward.phi=0.785 (repeatable)")
     return parser
 
 
-def run_train(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     """Run `cosim train` from parsed arguments; returns the exit code (130 when interrupted)."""
     for name in ("workers", "episodes"):
         value = getattr(args, name)
@@ -316,7 +311,3 @@ def run_train(args: argparse.Namespace) -> int:
              result.samples, result.out_dir)
     return 130 if result.interrupted else 0
 
-
-# The `cosim` CLI's subcommand contract (cosim.cli): `add_arguments(parser)` and `run(args) -> int`.
-add_arguments = add_train_args
-run = run_train

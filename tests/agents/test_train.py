@@ -13,7 +13,7 @@ from agents.config import train_config
 from agents.fake_env import CueEnv, make_fake_env
 from agents.model import ActorCritic
 from agents.multiagent import MultiAgentPolicy
-from agents.train import add_train_args, run_train, train
+from agents.train import add_arguments, run, train
 from cosim.config import load_config
 
 SMALL = {"feature_dim": 32, "head_hidden": 32, "optimizer": "adam", "lr": 0.002, "disseminate_every": 4, "gamma": 0.5,
@@ -143,10 +143,10 @@ def test_cli_arguments_reach_the_trainer(tmp_path: Path, monkeypatch: pytest.Mon
     config = tmp_path / "smoke.yaml"
     config.write_text("train:\n  feature_dim: 16\n  head_hidden: 16\n")
     monkeypatch.setattr(train_module, "_default_env_factory", lambda cfg: make_fake_env(n_agents=2))
-    parser = add_train_args(argparse.ArgumentParser())
+    parser = add_arguments(argparse.ArgumentParser())
     args = parser.parse_args(["--config", str(config), "--out", str(tmp_path / "run"), "--workers", "1",
                               "--episodes", "2", "--set", "train.lr=0.01", "--set", "train.rollout_steps=2"])
-    assert run_train(args) == 0
+    assert run(args) == 0
     _, meta = load_policy(tmp_path / "run")
     assert meta["train"]["lr"] == 0.01 and meta["train"]["rollout_steps"] == 2 and meta["train"]["workers"] == 1
     saved = load_config(tmp_path / "run" / "config.yaml")  # the resolved config loads back
