@@ -33,7 +33,7 @@ REWARD_TERMS: dict[str, float] = {
     "speed": 1.0,  # progress this decision period / (max speed * period), in [0, 1]
     "lane_change": 0.05,  # an AV lane change (cost)
     "invalid_action": 0.1,  # an AV lane change toward no lane (cost)
-    "accel": 0.05,  # |speed change| / (max accel * period) (cost, AVs only)
+    "accel": 0.05,  # |speed change| / (AV max accel * period) (cost, every vehicle)
     "collision": 5.0,  # the vehicle crashed this period (cost)
     "merge": 2.0,  # the merging vehicle reached a through lane this period (bonus)
 }

@@ -17,7 +17,6 @@ ignored and SUMO's own models drive the AVs (the all-human baseline).
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 import shutil
@@ -80,11 +79,10 @@ class MergeEnv(ParallelEnv):
         self._snap: Snapshot | None = None
 
     # -- PettingZoo API -----------------------------------------------------------------------------
-    @functools.cache  # noqa: B019 - spaces must be the same object per agent
+    # One space object for all agents, as PettingZoo asks (no functools.cache: it would keep the env alive).
     def observation_space(self, agent: str) -> gymnasium.spaces.Box:
         return self._obs_space
 
-    @functools.cache  # noqa: B019
     def action_space(self, agent: str) -> gymnasium.spaces.Discrete:
         return self._act_space
 
@@ -190,7 +188,7 @@ class MergeEnv(ParallelEnv):
         self._target[idx] = d.target_speed
         for i, change in zip(idx, d.lane_change, strict=True):
             if change:
-                self.session.change_lane(self.possible_agents[i], int(change), self.cfg.sim.decision_period)
+                self.session.change_lane(self.possible_agents[i], int(change))
         lane_changed[idx] = d.lane_change != 0
         invalid[idx] = d.invalid
         return lane_changed, invalid
@@ -253,7 +251,8 @@ class MergeEnv(ParallelEnv):
             return None
         from cosim.render import render_scene
 
-        return render_scene(self.road_raster, self._snap, self.mapper, self.cfg.observation)
+        live = [self.possible_agents.index(a) for a in self.agents]
+        return render_scene(self.road_raster, self._snap, self.mapper, self.cfg.observation, live[0] if live else 0)
 
     def flush_outputs(self) -> None:
         """Complete and parse the last episode's SUMO outputs now (SUMO is restarted at the next reset)."""

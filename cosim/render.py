@@ -1,6 +1,6 @@
 """`render_mode="rgb_array"`: a top view of the scene above the first live agent's newest VelocityMap frame.
 
-Contract: `render_scene(road, snap, mapper, cfg)` returns an (H, W, 3) uint8 image; it reads only the
+Contract: `render_scene(road, snap, mapper, cfg, agent)` returns an (H, W, 3) uint8 image; it reads only the
 snapshot, the road raster and the mapper's stacks. Colours: road grey, AVs green, HVs blue, merging
 vehicle purple; in the VelocityMap panel brightness is the pixel value.
 """
@@ -21,9 +21,9 @@ SCENE_RES = 0.5  # [m/px]
 
 
 def render_scene(road: RoadRaster, snap: Snapshot, mapper: VelocityMapper, cfg: ObservationConfig,
-                 width_px: int = 1024) -> np.ndarray:
+                 agent: int = 0, width_px: int = 1024) -> np.ndarray:
     top = _top_view(road, snap)
-    panel = _velocity_map_panel(mapper, cfg)
+    panel = _velocity_map_panel(mapper, cfg, agent)
     scale_top = width_px / top.shape[1]
     scale_vm = width_px / panel.shape[1]
     top = _resize(top, max(1, round(top.shape[0] * scale_top)), width_px)
@@ -55,9 +55,9 @@ def _top_view(road: RoadRaster, snap: Snapshot) -> np.ndarray:
     return img[::-1]
 
 
-def _velocity_map_panel(mapper: VelocityMapper, cfg: ObservationConfig) -> np.ndarray:
-    """The newest frame of agent 0's stack, channels blended by colour."""
-    frame = mapper.observation(0)[-1].astype(np.float32) / mapper.high  # (C, H, W)
+def _velocity_map_panel(mapper: VelocityMapper, cfg: ObservationConfig, agent: int) -> np.ndarray:
+    """The newest frame of the agent's stack, channels blended by colour."""
+    frame = mapper.observation(agent)[-1].astype(np.float32) / mapper.high  # (C, H, W)
     img = np.zeros(frame.shape[1:] + (3,), dtype=np.float32)
     img[:] = BACKGROUND
     for ch, name in enumerate(cfg.channels):

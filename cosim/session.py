@@ -95,9 +95,7 @@ class SumoSession:
         self._crashed.clear()
         self._crashed_period.clear()
         self._arrived.clear()
-        self._sim_step()  # insert the t = 0 vehicles
-        for vid in ls.vehicle.getIDList():
-            self._on_insert(vid)
+        self._sim_step()  # inserts (and subscribes) the t = 0 vehicles
 
     def end_simulation(self) -> None:
         """Close SUMO (which completes its output files) but keep this process's slot; `load` restarts it."""
@@ -169,9 +167,11 @@ class SumoSession:
                 self._commanded.pop(vid, None)
         self._crashed_period = self._crashed - before
 
-    def change_lane(self, vid: str, direction: int, duration: float) -> None:
-        """Immediate lane change by +1 (left) or -1 (right); lane change mode 0 skips SUMO's gap checks."""
-        _libsumo().vehicle.changeLaneRelative(vid, direction, duration)
+    def change_lane(self, vid: str, direction: int) -> None:
+        """Lane change by +1 (left) or -1 (right) in the next step; lane change mode 0 skips SUMO's gap
+        checks. The request lasts one step: a meta-action is one change, never a lane to hold (lane indices
+        shift by one where the acceleration lane starts)."""
+        _libsumo().vehicle.changeLaneRelative(vid, direction, self.step_length)
 
     def remove(self, vids: Sequence[str]) -> None:
         ls = _libsumo()

@@ -265,3 +265,22 @@ def test_render_shows_scene_and_velocity_map() -> None:
         env.close()
     assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
     assert len(np.unique(frame.reshape(-1, 3), axis=0)) >= 4  # background, road, AVs, HVs at least
+
+
+def test_lane_change_does_not_follow_the_av_onto_the_acceleration_lane() -> None:
+    # Lane indices shift by one where the acceleration lane starts: a lane change just before the junction
+    # must leave the AV on the same through lane after it, not on the acceleration lane.
+    env = cosim.parallel_env("configs/default.yaml", {"scenario.n_avs": 1, "scenario.n_hvs": 0})
+    try:
+        env.reset(seed=0)
+        hw_in = env.desc.highway[0]
+        libsumo.vehicle.moveTo("av_0", f"{hw_in}_1", env.road.edge_length(hw_in) - 10.0)
+        env.step({"av_0": int(Action.LANE_RIGHT)})
+        seen = []
+        for _ in range(3):
+            env.step({"av_0": int(Action.IDLE)})
+            r = env.snapshot.row_of("av_0")
+            seen.append((env.road.edge_ids[env.snapshot.edge[r]], int(env.snapshot.lane[r])))
+    finally:
+        env.close()
+    assert seen[-1] == (env.desc.merge_edge, 1), seen  # hw_in lane 0 continues as the merge edge's lane 1
