@@ -16,6 +16,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from cosim.errors import ConfigError
+
 
 @dataclass(frozen=True)
 class Conv3dSpec:
@@ -48,7 +50,7 @@ class ActorCritic(nn.Module):
                  head_hidden: int = 256) -> None:
         super().__init__()
         if len(obs_shape) != 4:
-            raise ValueError(f"observation shape must be (frames, channels, height, width), got {obs_shape}")
+            raise ConfigError(f"observation shape must be (frames, channels, height, width), got {obs_shape}")
         self.obs_shape = tuple(int(s) for s in obs_shape)
         self.n_actions = n_actions
         frames, channels, height, width = self.obs_shape
@@ -64,7 +66,8 @@ class ActorCritic(nn.Module):
             try:
                 n_flat = self.conv(torch.zeros(1, channels, frames, height, width)).shape[1]
             except RuntimeError as exc:
-                raise ValueError(f"observation shape {obs_shape} is too small for the Conv3D stack: {exc}") from None
+                raise ConfigError(f"observation: shape {obs_shape} is too small for the paper's Conv3D stack; raise "
+                                  f"observation.height_px / width_px / frames ({exc})") from None
         self.fc = nn.Sequential(_init(nn.Linear(n_flat, feature_dim), relu_gain), nn.ReLU())
         self.actor = nn.Sequential(_init(nn.Linear(feature_dim, head_hidden), relu_gain), nn.ReLU(),
                                    _init(nn.Linear(head_hidden, n_actions), 0.01))

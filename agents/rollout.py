@@ -26,7 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from cosim.errors import SimulationError
+from cosim.config import EVAL_SEED_START
+from cosim.errors import ConfigError, NetError, SimulationError
 
 log = logging.getLogger(__name__)
 
@@ -54,9 +55,14 @@ class StepResult:
     lost: bool = False  # the env failed: the worker was restarted, the running episode is lost
 
 
+# A worker's episodes count up from its first seed: leave room for a million of them below evaluation's seeds.
+_FIRST_SEEDS = EVAL_SEED_START - 1_000_000
+
+
 def _seed(seed: int, worker: int, generation: int) -> int:
-    """Distinct first-episode seed per worker and per (re)start, so a crashing episode is not replayed."""
-    return (seed * 1_000_003 + worker * 10_007 + generation * 7_919) % 2**31
+    """First-episode seed per worker and per (re)start, so a crashing episode is not replayed; always below
+    the evaluation seeds."""
+    return int(np.random.SeedSequence([seed, worker, generation]).generate_state(1)[0]) % _FIRST_SEEDS
 
 
 class _EnvRunner:
@@ -129,6 +135,8 @@ def _worker_main(conn: Connection, env_factory: EnvFactory) -> None:
             conn.send(("ok", runner.reset(arg) if cmd == "reset" else runner.step(arg)))
     except EOFError:  # the learner went away
         pass
+    except (ConfigError, NetError) as exc:  # bad input fails the same way in every restart: stop the run
+        conn.send(("fatal", exc))
     except BaseException as exc:  # report any env failure; the learner restarts this worker
         try:
             conn.send(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
@@ -165,6 +173,8 @@ class _Worker:
             status, payload = self.conn.recv()
         except (EOFError, OSError):
             raise WorkerFailure(f"{self.proc.name}: process died (exit code {self.proc.exitcode})") from None
+        if status == "fatal":
+            raise payload
         if status == "error":
             raise WorkerFailure(f"{self.proc.name}: env raised {payload}")
         return payload

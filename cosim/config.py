@@ -27,6 +27,8 @@ OBSERVATION_PRESETS: dict[str, dict[str, Any]] = {
     "paper": {"frames": 10, "height_px": 64, "width_px": 512, "length_m": 256.0, "width_m": 32.0},
 }
 CHANNELS = ("road", "avs", "hvs", "ego_merger")
+# Episode seeds from here on are evaluation's; training draws its seeds below, so the two never meet.
+EVAL_SEED_START = 10_000_000
 AV_DRIVERS = ("env", "sumo")  # who drives the AVs: the agents through the env, or SUMO's own models
 # Named terms of a vehicle's individual utility and their default weights (see cosim.reward).
 REWARD_TERMS: dict[str, float] = {

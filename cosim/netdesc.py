@@ -133,6 +133,9 @@ def validate(roadnet: RoadNet, desc: NetDescription) -> None:
     if desc.merge_edge not in desc.highway:
         raise NetError(f"{where}: merge_edge {desc.merge_edge!r} is not in highway {list(desc.highway)}")
     n = roadnet.num_lanes(desc.merge_edge)
+    if not desc.accel_lanes:  # the merge is defined by leaving them: without one there is none
+        raise NetError(f"{where}: key accel_lanes: name the acceleration lane(s) of {desc.merge_edge!r}, "
+                       "the lanes the merging vehicle must leave")
     for i in desc.accel_lanes:
         if not 0 <= i < n:
             raise NetError(f"{where}: key accel_lanes: lane {i} out of range; {desc.merge_edge!r} has lanes "

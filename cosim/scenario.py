@@ -58,6 +58,10 @@ def route_ids(desc: NetDescription) -> dict[str, tuple[str, ...]]:
 
 def plan_episode(cfg: Config, desc: NetDescription, road: RoadNet, seed: int) -> list[Spawn]:
     sc = cfg.scenario
+    length = desc.highway_length(road)
+    if sc.place_from < 0 or sc.place_to > length:
+        raise ConfigError(f"scenario.place_from / place_to: [{sc.place_from}, {sc.place_to}] m must lie on the "
+                          f"highway, [0, {length:.1f}] m long in {road.net_file}")
     rng = np.random.default_rng(seed)
     n_total = sc.n_avs + sc.n_hvs
     hw_index = {edge: i for i, edge in enumerate(desc.highway)}

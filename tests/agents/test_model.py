@@ -6,6 +6,7 @@ import torch
 
 from agents.model import ActorCritic
 from cosim.config import OBSERVATION_PRESETS
+from cosim.errors import ConfigError
 
 
 def preset_shape(name: str) -> tuple[int, int, int, int]:
@@ -59,5 +60,5 @@ def test_act_on_read_only_numpy_views() -> None:
 
 
 def test_too_small_observation_is_a_clear_error() -> None:
-    with pytest.raises(ValueError, match="too small"):
+    with pytest.raises(ConfigError, match="too small"):
         ActorCritic((1, 4, 2, 2))

@@ -1,14 +1,17 @@
 """Rollout workers over the fake env: PettingZoo semantics, copies of views, auto-reset, restarts."""
 
+import functools
 from pathlib import Path
 
 import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
+import cosim
 from agents.fake_env import CueEnv, make_fake_env
-from agents.rollout import WorkerPool
-from cosim.errors import SimulationError
+from agents.rollout import WorkerPool, _seed
+from cosim.config import EVAL_SEED_START
+from cosim.errors import NetError, SimulationError
 
 
 def test_fake_env_passes_the_pettingzoo_parallel_api_test() -> None:
@@ -75,3 +78,16 @@ def test_failing_worker_is_restarted_and_its_episode_lost(tmp_path: Path) -> Non
 def test_too_many_restarts_abort(tmp_path: Path) -> None:
     with pytest.raises(SimulationError, match="max_restarts"):
         WorkerPool(make_fake_env(n_agents=0), workers=1, max_restarts=1)
+
+
+def test_bad_input_in_a_worker_stops_the_run_at_once(tmp_path: Path) -> None:
+    # A ConfigError / NetError would fail again in every restart: it reaches the user as it is.
+    with pytest.raises(NetError, match="nope.net.xml"):
+        WorkerPool(functools.partial(cosim.parallel_env, "configs/default.yaml",
+                                     {"net.file": str(tmp_path / "nope.net.xml")}), workers=1)
+
+
+def test_training_seeds_stay_below_evaluation_seeds() -> None:
+    seeds = {_seed(s, w, g) for s in (0, 7, 10_000_123) for w in range(4) for g in range(3)}
+    assert len(seeds) == 36
+    assert all(0 <= s < EVAL_SEED_START - 1_000_000 for s in seeds)

@@ -83,3 +83,10 @@ def test_too_many_vehicles_is_a_clear_error(net) -> None:
     cfg = load_config(ROOT / "configs" / "default.yaml", {"scenario.n_hvs": 200})
     with pytest.raises(ConfigError, match="do not fit"):
         plan_episode(cfg, desc, road, 0)
+
+
+def test_placement_window_off_the_highway_is_a_clear_error(net) -> None:
+    road, desc = net
+    cfg = load_config(ROOT / "configs" / "default.yaml", {"scenario.place_to": 5000.0})
+    with pytest.raises(ConfigError, match="place_from / place_to"):
+        plan_episode(cfg, desc, road, 0)

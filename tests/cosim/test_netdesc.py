@@ -112,3 +112,11 @@ def test_inference_failure_explains_the_yaml(tmp_path: Path, two_lane_net: Path)
         infer_net_description(net)
     with pytest.raises(NetError, match="cannot infer"):
         load_net_description(net, None)
+
+
+def test_empty_accel_lanes_is_refused(tmp_path: Path) -> None:
+    net = build_merge_net(tmp_path, lanes=2)
+    (tmp_path / "merge.yaml").write_text("highway: [hw_in, hw_merge, hw_out]\nramp: [ramp]\nmerge_edge: hw_merge\n"
+                                         "accel_lanes: []\n")
+    with pytest.raises(NetError, match="accel_lanes: name the acceleration lane"):
+        load_net_description(load_roadnet(net))
