@@ -8,7 +8,8 @@ Contract:
   resets by itself: its `next_obs` is then the new episode's first observation and `episode` holds the
   finished episode's info. Observations are copied out of the env's read-only views.
 - A worker whose env raises (or whose process dies) is replaced by a fresh process and reset; its
-  `StepResult.lost` is True, meaning the running episode is lost and none of it should count as data.
+  `StepResult.lost` is True: the running episode is lost, its remaining steps never reach the learner and
+  it is not counted as an episode (steps of it collected in earlier updates were already trained on).
   More than `max_restarts` replacements over the pool's life raise `cosim.errors.SimulationError`.
 This module imports neither torch nor SUMO, so workers start fast; the env factory imports what it needs.
 """

@@ -9,8 +9,8 @@ are the argparse pair behind `cosim train`.
 
 One update: every worker steps its env `rollout_steps` times with all AVs acting (the learner AV with
 its live network, the others with frozen copies, see agents.multiagent); then the learner's network
-trains on the learner's valid samples with GAE advantages. Samples of absent agents and of episodes
-lost to a worker failure are masked out, never padded into the loss.
+trains on the learner's valid samples with GAE advantages. Samples of absent agents and the rollout's
+steps of an episode lost to a worker failure are masked out, never padded into the loss.
 """
 
 from __future__ import annotations

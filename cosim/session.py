@@ -208,5 +208,4 @@ class SumoSession:
             lane_pos=np.fromiter((r[_LANE_POS] for r in rows), np.float64, n),
             distance=np.fromiter((r[_DIST] for r in rows), np.float64, n),
             length=length, width=np.fromiter((self._static[v][2] for v in ids), np.float64, n),
-            crashed=np.fromiter((v in self._crashed_period for v in ids), bool, n),
-            arrived=frozenset(self._arrived))
+            crashed=np.fromiter((v in self._crashed_period for v in ids), bool, n))

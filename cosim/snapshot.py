@@ -32,7 +32,6 @@ class Snapshot:
     length: np.ndarray  # (V,) float64 [m]
     width: np.ndarray  # (V,) float64 [m]
     crashed: np.ndarray  # (V,) bool: in a collision during the last decision period
-    arrived: frozenset[str] = frozenset()  # vehicles that left the network during the last period
     _rows: dict[str, int] = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -54,7 +53,6 @@ class Snapshot:
         """A snapshot from per-vehicle lists, with defaults for omitted columns (for tests and tools)."""
         ids = tuple(columns.pop("ids"))
         n = len(ids)
-        arrived = frozenset(columns.pop("arrived", ()))
         defaults = {
             "kind": (np.int8, KIND_HV), "x": (np.float64, 0.0), "y": (np.float64, 0.0),
             "heading": (np.float64, 0.0), "speed": (np.float64, 0.0), "edge": (np.int32, 0),
@@ -68,4 +66,4 @@ class Snapshot:
             name: (np.asarray(columns[name], dtype=dt) if name in columns else np.full(n, fill, dtype=dt))
             for name, (dt, fill) in defaults.items()
         }
-        return cls(time=time, ids=ids, arrived=arrived, **arrays)
+        return cls(time=time, ids=ids, **arrays)

@@ -180,13 +180,6 @@ class VelocityMapper:
         view.flags.writeable = False
         return view
 
-    def observations(self) -> np.ndarray:
-        """(N, F, C, H, W) stacks of all agents: a read-only view valid until the next update."""
-        t = self._t
-        view = self._buf[:, t + 1 : t + 1 + self.shape[0]]
-        view.flags.writeable = False
-        return view
-
     def update(self, snap: Snapshot, ego_rows: np.ndarray) -> None:
         """Render one frame per agent from `snap` and push it; ego_rows (N,) are rows in `snap`, -1 absent."""
         rows = np.asarray(ego_rows, dtype=np.int64).reshape(-1)
