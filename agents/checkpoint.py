@@ -9,6 +9,8 @@ Contract:
 - `load_policy(path)` returns `(policies, meta)`: `policies` maps each agent name to its trained
   `ActorCritic` (eval mode; the same object for every agent when the policy is shared), whose
   `act(obs (B, F, C, H, W), greedy)` gives actions; `meta` holds the checkpoint's spec, counters and config.
+  `act_agents(policies, obs, greedy)` acts for named agents, one forward per network (agents sharing a
+  network are batched), the way evaluation plays a checkpoint.
 Payload layout (format "cosim-ma-a2c", version 1): spec {agents, obs_shape, obs_dtype, n_actions,
 shared_policy, feature_dim, head_hidden}, policy (MultiAgentPolicy.state_dict()), counters, rng
 {python, numpy, torch}, train (TrainConfig as a dict), config (Config.to_dict()), phis (each AV's SVO [rad]).
@@ -17,6 +19,7 @@ shared_policy, feature_dim, head_hidden}, policy (MultiAgentPolicy.state_dict())
 from __future__ import annotations
 
 import random
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -120,3 +123,19 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[dict[str, ActorC
     meta = {"path": str(path), "spec": spec, "counters": payload["counters"],
             "train": payload.get("train", {}), "config": payload.get("config", {}), "phis": payload.get("phis")}
     return policies, meta
+
+
+@torch.no_grad()
+def act_agents(policies: Mapping[str, ActorCritic], obs: Mapping[str, np.ndarray], greedy: bool) -> dict[str, int]:
+    """Each agent's action for its observation (F, C, H, W); agents sharing a network act in one batch.
+
+    (`agents.multiagent.MultiAgentPolicy.act` batches the same way during training, but samples only and
+    follows the learner schedule of a training run's networks.)"""
+    groups: dict[int, list[str]] = {}
+    for a in obs:
+        groups.setdefault(id(policies[a]), []).append(a)
+    actions = {}
+    for names in groups.values():
+        batch = np.stack([obs[a] for a in names])  # (B, F, C, H, W)
+        actions.update(zip(names, policies[names[0]].act(batch, greedy=greedy).tolist(), strict=True))
+    return actions

@@ -6,7 +6,9 @@ Contract: `compare(dirs, out_dir, labels)` takes evaluation folders (written by 
 merging vehicle's distance, overlaid), `training_curves.png` (when a run folder has the trainer's
 `episodes.csv`), per run `LABEL/` with the time-space diagrams, guide-AV speed profiles and top views of
 its recorded episodes, `summary.json` / `summary.csv` (all runs' metrics) and `report.md` (the table and
-the figures). `plot_run(eval_dir, plots_dir, label)` draws one evaluation's own figures (used by
+the figures). Each run is summarised from its `episodes.csv` by `agents.evaluate.summarize_evaluation`
+over the seeds its `summary.json` names, as `cosim evaluate` did: rows of other seeds in the file are
+left out. `plot_run(eval_dir, plots_dir, label, rows)` draws one evaluation's own figures (used by
 `cosim evaluate` too). A folder without an evaluation raises `CosimError`.
 """
 
@@ -24,12 +26,12 @@ from typing import Any
 
 from tqdm import tqdm
 
-from agents.evaluate import load_trajectory, read_rows, trajectory_files
+from agents.evaluate import load_trajectory, summarize_evaluation, trajectory_files
 from cosim import plots
 from cosim.config import load_config
 from cosim.errors import CosimError
 from cosim.files import atomic_write_text
-from cosim.metrics import SUMMARY_METRICS, format_table, summarize
+from cosim.metrics import SUMMARY_METRICS, format_table
 from cosim.roadnet import load_roadnet
 
 log = logging.getLogger(__name__)
@@ -55,11 +57,11 @@ def find_evaluation(path: Path, label: str | None = None) -> Evaluation:
                      f"`cosim evaluate --out {path}` (or `--run {path}`) first")
 
 
-def plot_run(eval_dir: Path, plots_dir: Path, label: str, histogram: bool = True) -> list[Path]:
-    """One evaluation's figures: merger distance histogram, and per recorded episode a time-space diagram
-    with the guide AV's speed profile and top views around the merge."""
-    out = [plots.distance_histogram({label: _column(eval_dir, "merger_distance")},
-                                    plots_dir / "merger_distance.png")] if histogram else []
+def plot_run(eval_dir: Path, plots_dir: Path, label: str, rows: Sequence[dict[str, str]] | None = None) -> list[Path]:
+    """One evaluation's figures: the merger distance histogram over `rows` (none without them), and per
+    recorded episode a time-space diagram with the guide AV's speed profile and top views around the merge."""
+    out = [plots.distance_histogram({label: _column(rows, "merger_distance")},
+                                    plots_dir / "merger_distance.png")] if rows is not None else []
     files = trajectory_files(eval_dir)
     if files:
         cfg = load_config(eval_dir / "config.yaml")
@@ -73,9 +75,9 @@ def plot_run(eval_dir: Path, plots_dir: Path, label: str, histogram: bool = True
     return out
 
 
-def _column(eval_dir: Path, name: str) -> list[float]:
+def _column(rows: Sequence[dict[str, str]], name: str) -> list[float]:
     values = []
-    for r in read_rows(eval_dir / "episodes.csv"):
+    for r in rows:
         try:
             values.append(float(r.get(name) or "nan"))
         except ValueError:
@@ -93,20 +95,23 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
         raise CosimError(f"runs need distinct labels, got {names}; pass --labels")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    # Recomputed from episodes.csv, so every run is summarised the same way.
-    rows = {e.label: read_rows(e.eval_dir / "episodes.csv") for e in evals}
-    metrics = {e.label: summarize(rows[e.label], e.summary.get("confidence", 0.95)) for e in evals}
+    # Recomputed from episodes.csv, so every run is summarised the same way (and as `cosim evaluate` did).
+    rows, metrics = {}, {}
+    for e in evals:
+        rows[e.label], metrics[e.label] = summarize_evaluation(
+            e.eval_dir, int(e.summary["first_seed"]), int(e.summary.get("requested_episodes", e.summary["episodes"])),
+            e.summary.get("confidence", 0.95))
     episodes = {e.label: len(rows[e.label]) for e in evals}
+    merger = {label: _column(r, "merger_distance") for label, r in rows.items()}
     figures = {"bars": plots.bars(metrics, out_dir / "bars.png"),
-               "merger distance": plots.distance_histogram(
-                   {e.label: _column(e.eval_dir, "merger_distance") for e in evals}, out_dir / "merger_distance.png")}
+               "merger distance": plots.distance_histogram(merger, out_dir / "merger_distance.png")}
     logs = {e.label: e.run_dir / "episodes.csv" for e in evals if e.run_dir is not None}
     curves = plots.training_curves(logs, out_dir / "training_curves.png") if logs else None
     if curves is not None:
         figures["training curves"] = curves
     per_run: dict[str, list[Path]] = {}
     for e in tqdm(evals, desc="plots", unit="run", leave=False):
-        per_run[e.label] = plot_run(e.eval_dir, out_dir / e.label, e.label, histogram=False)
+        per_run[e.label] = plot_run(e.eval_dir, out_dir / e.label, e.label)
     result = {e.label: {**e.summary, "episodes": episodes[e.label], "metrics": metrics[e.label],
                         "eval_dir": str(e.eval_dir)} for e in evals}
     atomic_write_text(out_dir / "summary.json", json.dumps(result, indent=2) + "\n")
@@ -132,8 +137,9 @@ def _report(evals: Sequence[Evaluation], metrics: dict, episodes: dict[str, int]
     conf = evals[0].summary.get("confidence", 0.95)
     lines = ["# Evaluation report", "",
              "Runs: " + ", ".join(f"**{e.label}** ({e.summary.get('policy')}, `{e.eval_dir}`)" for e in evals),
-             "", f"Each cell: mean over episodes [{conf:.0%} t-interval]. Throughput, travel time and time loss "
-             "come from SUMO's own induction loops and tripinfo output.", "",
+             "", f"Each cell: mean over episodes [{conf:.0%} interval: Wilson score for the crash and merge rates, "
+             "Student t for the other metrics]. Throughput, travel time and time loss come from SUMO's own "
+             "induction loops and tripinfo output.", "",
              format_table(metrics, episodes, markdown=True, confidence=conf), ""]
     for title, path in figures.items():
         lines += [f"## {title.capitalize()}", "", f"![{title}]({path.relative_to(out_dir)})", ""]

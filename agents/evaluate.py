@@ -6,24 +6,31 @@ Contract:
   from `sim.seed` (a run would need ten million episodes to reach it). Policies: `checkpoint` (a trained
   run; greedy argmax actions, or sampled), `sumo` (SUMO's own models drive the AVs: an all-human road),
   `idle`, `random`, `scripted` (`cosim.policies`).
-- Into `out_dir` go: `evaluation.json` (what was evaluated), `config.yaml` (the resolved config),
-  `episodes.csv` (one row per episode, appended and flushed as each finishes: crash and crash by class,
-  merge and time to merge, distance and mean speed by class, the merging vehicle's distance, the guide AV
-  and its actions, SUMO's throughput [veh/h], travel time and time loss [s], and `distance_check`, the
-  largest |our odometer - SUMO's tripinfo routeLength| [m] over the episode's vehicles), `summary.json`
-  (each metric's mean and 95% t-interval, written atomically), `trajectories/seed_S.npz` for the first
-  `trajectories` episodes, `sumo/episode_S/` (SUMO's tripinfo and induction-loop files) and `plots/`.
+- Into `out_dir` go: `evaluation.json` (what was evaluated, with `config_sha256`, the hash of the resolved
+  config), `config.yaml` (the resolved config), `episodes.csv` (one row per episode, appended and flushed
+  as each finishes: the env's episode summary (`MergeEnv.episode_summary`: crash and crash by class, merge
+  and time to merge, distance and mean speed by class, the merging vehicle's distance, the guide AV and its
+  actions), SUMO's throughput [veh/h], travel time and time loss [s], and `distance_check`, the largest
+  |our odometer - SUMO's tripinfo routeLength| [m] over the episode's vehicles), `summary.json` (each
+  metric's mean and interval, `cosim.metrics.summarize`, written atomically), `trajectories/seed_S.npz` for
+  the first `trajectories` episodes, `sumo/episode_S/` (SUMO's tripinfo and induction-loop files) and
+  `plots/`.
+- `summarize_evaluation(eval_dir, first_seed, episodes, confidence)` picks the rows of the requested seeds
+  from `episodes.csv` and summarises them: `evaluate` and `cosim compare` both report through it.
 - Resume: a second call with the same `out_dir` skips the seeds already in `episodes.csv`; a folder
-  holding an evaluation of another policy / checkpoint / net is refused.
+  holding an evaluation of another policy / checkpoint / net / config (`config_sha256`; the folder's
+  location, `sim.output_dir`, is not part of it) is refused.
 - `workers > 1` runs episodes in spawned worker processes (libsumo runs one simulation per process).
-- Bad input raises a `CosimError`: no checkpoint in the run folder, a checkpoint whose observation shape
-  or agents do not fit the net/preset, a net without a merge (from the net description).
+- Bad input raises a `CosimError`: episodes or workers < 1 or trajectories < 0 (a `ConfigError`), no
+  checkpoint in the run folder, a checkpoint whose observation shape or agents do not fit the net/preset,
+  a net without a merge (from the net description).
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import json
 import logging
 import math
@@ -43,7 +50,7 @@ from cosim.control import Action
 from cosim.env import MergeEnv
 from cosim.errors import ConfigError, CosimError
 from cosim.files import AppendCsv, atomic_path, atomic_write_text
-from cosim.metrics import Chainage, EpisodeTracker, format_table, summarize
+from cosim.metrics import EpisodeTracker, format_table, summarize
 from cosim.policies import POLICIES
 
 log = logging.getLogger(__name__)
@@ -53,8 +60,7 @@ CHECKPOINT = "checkpoint"  # the policy name of a trained run
 BASELINES = ("sumo", "idle", "random", "scripted")
 # Config overrides a policy needs: the all-human baseline hands the AVs to SUMO.
 POLICY_OVERRIDES: dict[str, dict[str, Any]] = {"sumo": {"sim.av_driver": "sumo"}}
-CHECKPOINT_FILE = "checkpoint.pt"  # agents.checkpoint.CHECKPOINT_NAME, without importing torch here
-# Leading episodes.csv columns (the tracker's and SUMO's follow).
+# Leading episodes.csv columns (the env's episode summary and SUMO's follow).
 FIRST_COLUMNS = ("seed", "policy")
 
 
@@ -76,6 +82,13 @@ def evaluate_config(section: Mapping[str, Any]) -> EvaluateConfig:
     if ec.episodes < 1 or ec.workers < 1 or ec.trajectories < 0 or not 0 < ec.confidence < 1:
         raise ConfigError("evaluate: need episodes >= 1, workers >= 1, trajectories >= 0, 0 < confidence < 1")
     return ec
+
+
+def check_counts(episodes: int, workers: int, trajectories: int, prefix: str = "") -> None:
+    """`ConfigError` unless episodes >= 1, workers >= 1 and trajectories >= 0 (`prefix`: e.g. "--" for flags)."""
+    for name, value, least in (("episodes", episodes, 1), ("workers", workers, 1), ("trajectories", trajectories, 0)):
+        if value < least:
+            raise ConfigError(f"{prefix}{name}: must be >= {least}, got {value}")
 
 
 # -- policies ------------------------------------------------------------------------------------------
@@ -110,7 +123,7 @@ def make_policy(spec: PolicySpec, env: MergeEnv) -> Callable[[int], ActPolicy]:
 def _checkpoint_policy(path: Path, env: MergeEnv, greedy: bool) -> Callable[[int], ActPolicy]:
     import torch  # only a trained policy needs torch
 
-    from agents.checkpoint import CheckpointError, load_policy
+    from agents.checkpoint import CheckpointError, act_agents, load_policy
 
     nets, meta = load_policy(path)
     spec = meta["spec"]
@@ -127,20 +140,7 @@ def _checkpoint_policy(path: Path, env: MergeEnv, greedy: bool) -> Callable[[int
 
     def for_episode(seed: int) -> ActPolicy:
         torch.manual_seed(seed)  # sampled actions are reproducible per episode
-
-        def act(obs: Observations) -> dict[str, int]:
-            # One batch per network: agents sharing a policy act together.
-            groups: dict[int, list[str]] = {}
-            for a in obs:
-                groups.setdefault(id(nets[a]), []).append(a)
-            actions = {}
-            for names in groups.values():
-                batch = np.stack([obs[a] for a in names])  # (B, F, C, H, W)
-                for a, act_ in zip(names, nets[names[0]].act(batch, greedy=greedy), strict=True):
-                    actions[a] = int(act_)
-            return actions
-
-        return act
+        return lambda obs: act_agents(nets, obs, greedy)
 
     return for_episode
 
@@ -163,7 +163,6 @@ class Runner:
         self.job = job
         self.env = MergeEnv(load_config(job.config))
         try:
-            self.chainage = Chainage.from_net(self.env.desc, self.env.road)
             self.policy = make_policy(job.policy, self.env)
         except BaseException:  # e.g. a checkpoint that does not fit: free the process's SUMO slot
             self.env.close()
@@ -173,8 +172,10 @@ class Runner:
         env = self.env
         act = self.policy(seed)
         obs, _ = env.reset(seed=seed)
-        tracker = EpisodeTracker(env.zone, self.chainage, record=seed in self.job.record)
-        tracker.observe(env.snapshot)
+        # The env's own tracker gives the row; a second one records the trajectories of the plotted episodes.
+        recorder = EpisodeTracker(env.zone, env.chainage, record=True) if seed in self.job.record else None
+        if recorder is not None:
+            recorder.observe(env.snapshot)
         returns = dict.fromkeys(env.possible_agents, 0.0)
         infos: dict[str, Any] = {}
         while env.agents:
@@ -182,20 +183,20 @@ class Runner:
             obs, rewards, _, _, infos = env.step(actions)
             for a, r in rewards.items():
                 returns[a] += r
-            tracker.observe(env.snapshot, actions if env.session.drive_avs else None)
+            if recorder is not None:
+                recorder.observe(env.snapshot, actions if env.session.drive_avs else None)
         env.flush_outputs()
-        summary = next(iter(infos.values()), {}).get("episode", {})
-        row = {"seed": seed, "policy": self.job.policy.name, **tracker.row(),
-               "merge_failed": bool(summary.get("merge_failed", False)),
+        summary = next(iter(infos.values()))["episode"]  # every agent's last info carries it
+        row = {"seed": seed, "policy": self.job.policy.name, **summary,
                "av_return": float(np.mean(list(returns.values())))}
         sumo = env.sumo_outputs.pop(seed, None)
         if sumo is not None:
             row.update(sumo.as_row())
-            common = [v for v in tracker.distance if v in sumo.distance]
-            row["distance_check"] = max((abs(tracker.distance[v] - sumo.distance[v]) for v in common),
+            ours = env.tracker.distance
+            row["distance_check"] = max((abs(ours[v] - sumo.distance[v]) for v in ours if v in sumo.distance),
                                         default=math.nan)
-        if tracker.record:
-            _save_npz(Path(self.job.out_dir) / "trajectories" / f"seed_{seed}.npz", tracker.trajectory())
+        if recorder is not None:
+            _save_npz(Path(self.job.out_dir) / "trajectories" / f"seed_{seed}.npz", recorder.trajectory())
         return row
 
     def close(self) -> None:
@@ -249,6 +250,26 @@ def read_rows(path: Path) -> list[dict[str, str]]:
     return [r for r in rows if r.get("seed") and None not in r.values()]
 
 
+def summarize_evaluation(eval_dir: Path, first_seed: int, episodes: int,
+                         confidence: float = 0.95) -> tuple[list[dict[str, str]], dict[str, dict[str, float | int]]]:
+    """(rows, metrics): the episodes.csv rows of seeds `first_seed .. first_seed + episodes - 1` in seed order
+    (one per seed), and their `summarize`d metrics. Rows of other seeds in the file are left out."""
+    wanted = range(first_seed, first_seed + episodes)
+    by_seed = {int(r["seed"]): r for r in read_rows(Path(eval_dir) / "episodes.csv") if int(r["seed"]) in wanted}
+    rows = [by_seed[s] for s in sorted(by_seed)]
+    return rows, summarize(rows, confidence)
+
+
+def config_hash(config: Mapping[str, Any]) -> str:
+    """sha256 of a resolved config (`Config.to_dict()`) as canonical JSON, over what shapes the episodes: not
+    `sim.output_dir` (where the folder is: a moved or copied evaluation still resumes), nor the `train` and
+    `evaluate` sections (how many episodes and workers; the policy is compared on its own)."""
+    kept = {k: v for k, v in config.items() if k not in ("train", "evaluate")}
+    kept["sim"] = {k: v for k, v in config.get("sim", {}).items() if k != "output_dir"}
+    text = json.dumps(kept, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
 def trajectory_files(out_dir: Path) -> list[Path]:
     return sorted((out_dir / "trajectories").glob("seed_*.npz"), key=lambda p: int(p.stem.split("_")[1]))
 
@@ -264,12 +285,14 @@ def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed
              plots: bool = True) -> dict[str, Any]:
     """Evaluate `policy` on episodes `seed .. seed + episodes - 1` into `out_dir`; returns the summary dict
     (also written to `out_dir/summary.json`). Resumes an interrupted evaluation in the same folder."""
+    check_counts(episodes, workers, trajectories)
     out_dir = Path(out_dir).resolve()
     overrides = {**POLICY_OVERRIDES.get(policy.name, {}), "sim.outputs": True,
                  "sim.output_dir": str(out_dir / "sumo")}
     cfg = load_config(cfg, overrides)
     meta = {"policy": policy.name, "checkpoint": policy.checkpoint, "greedy": policy.greedy,
-            "net": cfg.net.file, "run": None if run_dir is None else str(Path(run_dir).resolve())}
+            "net": cfg.net.file, "run": None if run_dir is None else str(Path(run_dir).resolve()),
+            "config_sha256": config_hash(cfg.to_dict())}
     seeds = [seed + k for k in range(episodes)]
     job = Job(cfg.to_dict(), policy, str(out_dir), frozenset(seeds[:trajectories]))
     Runner(job).close()  # bad nets and checkpoints fail here, before the folder is claimed
@@ -283,11 +306,10 @@ def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed
     for row in tqdm(run_episodes(job, todo, workers), total=len(todo), desc=f"evaluate {policy.name}",
                     unit="ep", leave=False):
         writer.write(row)
-    rows = [r for r in read_rows(csv_path) if int(r["seed"]) in set(seeds)]
-    rows.sort(key=lambda r: int(r["seed"]))
+    rows, metrics = summarize_evaluation(out_dir, seed, episodes, confidence)
     checks = [float(r["distance_check"]) for r in rows if r.get("distance_check") not in (None, "", "nan")]
-    summary = {**meta, "episodes": len(rows), "first_seed": seed, "confidence": confidence,
-               "metrics": summarize(rows, confidence),
+    summary = {**meta, "episodes": len(rows), "first_seed": seed, "requested_episodes": episodes,
+               "confidence": confidence, "metrics": metrics,
                "distance_check_max_m": max(checks) if checks else math.nan}
     atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2, allow_nan=True) + "\n")
     if checks and max(checks) > 0.5:
@@ -295,7 +317,7 @@ def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed
     if plots:
         from agents.compare import plot_run  # matplotlib only when plotting
 
-        plot_run(out_dir, out_dir / "plots", label=policy.name)
+        plot_run(out_dir, out_dir / "plots", label=policy.name, rows=rows)
     return summary
 
 
@@ -308,6 +330,12 @@ def _claim(out_dir: Path, meta: dict[str, Any], cfg: Config) -> None:
         if differs:
             raise CosimError(f"{out_dir}: holds an evaluation with other {', '.join(differs)} "
                              f"({', '.join(f'{k}={old.get(k)!r}' for k in differs)}); choose another --out")
+        # Folders from before the hash was stored: hash their config.yaml.
+        old_hash = old.get("config_sha256") or config_hash(yaml.safe_load((out_dir / "config.yaml").read_text()))
+        if old_hash != meta["config_sha256"]:
+            raise ConfigError(f"{out_dir}: holds an evaluation with another config (see its config.yaml; a "
+                              f"different --set, --config or net?); resuming would mix episodes of both in one "
+                              f"summary: choose another --out")
         return
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out_dir / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False))
@@ -352,12 +380,18 @@ def run(args: argparse.Namespace) -> int:
         overrides += [f"net.file={args.net.resolve()}", "net.description=null"]
     cfg = load_config(config, overrides)
     ec = evaluate_config(cfg.evaluate)
+    episodes = ec.episodes if args.episodes is None else args.episodes
+    workers = ec.workers if args.workers is None else args.workers
+    trajectories = ec.trajectories if args.trajectories is None else args.trajectories
+    check_counts(episodes, workers, trajectories, prefix="--")
     checkpoint = None
     if name == CHECKPOINT:
         if args.run is None and args.checkpoint is None:
             raise CosimError("cosim evaluate: give --run RUN (or --checkpoint FILE) for a trained policy, "
                              f"or --policy {{{','.join(BASELINES)}}} for a baseline")
-        checkpoint = args.checkpoint or args.run / CHECKPOINT_FILE
+        from agents.checkpoint import CHECKPOINT_NAME  # torch: a trained policy needs it anyway
+
+        checkpoint = args.checkpoint or args.run / CHECKPOINT_NAME
         if not checkpoint.is_file():
             raise CosimError(f"checkpoint {checkpoint}: not found; train the run first (cosim train), pass "
                              f"--checkpoint FILE, or evaluate a baseline with --policy")
@@ -366,9 +400,8 @@ def run(args: argparse.Namespace) -> int:
     if out is None:
         raise CosimError("cosim evaluate: give --out DIR for a baseline without --run")
     policy = PolicySpec(name, checkpoint, greedy=ec.greedy and not args.sample)
-    summary = evaluate(cfg, policy, out, episodes=args.episodes or ec.episodes,
-                       seed=ec.seed if args.seed is None else args.seed, workers=args.workers or ec.workers,
-                       trajectories=ec.trajectories if args.trajectories is None else args.trajectories,
+    summary = evaluate(cfg, policy, out, episodes=episodes, seed=ec.seed if args.seed is None else args.seed,
+                       workers=workers, trajectories=trajectories,
                        confidence=ec.confidence, run_dir=args.run, plots=not args.no_plots)
     log.info("wrote %s", Path(out) / "summary.json")
     print_summary(summary, out.name if args.run is None else args.run.name)

@@ -5,11 +5,14 @@ observe a stacked VelocityMap (frames, channels, height, width); rewards are the
 `cosim.reward`, with every weighted term in `infos[agent]["reward_terms"]`. An agent terminates when its
 AV crashes or leaves the net; all agents terminate when the merging vehicle crashes or gets stuck at the
 end of the acceleration lane; all are truncated at the horizon. On the last step every agent's info
-carries `"episode"`, the episode's summary. Observations are read-only views valid until the next step.
+carries `"episode"`, the episode's summary: the row of the `cosim.metrics.EpisodeTracker` the env feeds
+every snapshot (`env.tracker`), with the seed and whether the merge failed. Observations are read-only views
+valid until the next step.
 
 `step` is a template of small hooks: act -> simulate -> snapshot -> observe -> reward -> end.
 
-With `sim.outputs` each episode writes SUMO's tripinfo and induction-loop files into its own folder;
+With `sim.outputs` each episode writes SUMO's tripinfo and induction-loop files into its own folder
+(`cosim.outputs.episode_folder`);
 SUMO completes them at the next reset or close (or `flush_outputs()`), when they are parsed into
 `env.sumo_outputs[seed]` (`cosim.outputs.SumoOutputs`). With `sim.av_driver: sumo` the agents' actions are
 ignored and SUMO's own models drive the AVs (the all-human baseline).
@@ -18,7 +21,6 @@ ignored and SUMO's own models drive the AVs (the all-human baseline).
 from __future__ import annotations
 
 import logging
-import math
 import shutil
 import tempfile
 from collections.abc import Mapping
@@ -33,13 +35,14 @@ from cosim.config import Config, load_config
 from cosim.control import N_ACTIONS, decide
 from cosim.episode import MergeZone, merge_status
 from cosim.errors import SimulationError
+from cosim.metrics import Chainage, EpisodeTracker
 from cosim.netdesc import load_net_description
-from cosim.outputs import SumoOutputs, detector_site, episode_output_args, read_episode_outputs
+from cosim.outputs import SumoOutputs, detector_site, episode_folder, episode_output_args, read_episode_outputs
 from cosim.reward import svo_rewards, utility_terms, weighted_utility
 from cosim.roadnet import load_roadnet
 from cosim.scenario import av_id, kind_of, plan_episode, write_episode
 from cosim.session import SumoSession
-from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
+from cosim.snapshot import Snapshot
 from cosim.velocity_map import VelocityMapper, rasterize_road
 
 log = logging.getLogger(__name__)
@@ -58,6 +61,8 @@ class MergeEnv(ParallelEnv):
         self.desc = load_net_description(
             self.road, None if config.net.description is None else Path(config.net.description))
         self.zone = MergeZone.from_net(self.desc, self.road)
+        self.chainage = Chainage.from_net(self.desc, self.road)
+        self.tracker = EpisodeTracker(self.zone, self.chainage)  # this episode's metrics, renewed at reset
         self.possible_agents = [av_id(i) for i in range(config.scenario.n_avs)]
         self.agents: list[str] = []
         self.road_raster = rasterize_road(self.road.lane_shapes())
@@ -96,7 +101,8 @@ class MergeEnv(ParallelEnv):
         extra: list[str] = []
         if self.cfg.sim.outputs:
             out_root = Path(self.cfg.sim.output_dir) if self.cfg.sim.output_dir else self._tmp / "outputs"
-            folder = out_root / f"episode_{seed}"
+            folder = episode_folder(out_root, seed, busy=None if self._pending_outputs is None
+                                    else self._pending_outputs[1])
             extra = episode_output_args(folder, self.detectors)
         self.session.load(self.route_file, seed, extra)
         self._collect_outputs(end_time)  # the reload completed the previous episode's files
@@ -108,10 +114,10 @@ class MergeEnv(ParallelEnv):
         self._target = np.where(rows >= 0, snap.speed[np.maximum(rows, 0)], 0.0)
         self._dist = dict(zip(snap.ids, snap.distance, strict=True))
         self._speed = dict(zip(snap.ids, snap.speed, strict=True))
-        self._start_ids = set(snap.ids)
+        self.tracker = EpisodeTracker(self.zone, self.chainage)
+        self.tracker.observe(snap)
         self._merged_at: float | None = None
         self._n_steps = 0
-        self._any_crash = False
         self.mapper.reset()
         self.mapper.update(snap, rows)
         self._snap = snap
@@ -133,12 +139,12 @@ class MergeEnv(ParallelEnv):
         rows = snap.rows_of(self.possible_agents)
         self.mapper.update(snap, rows)
         status = merge_status(snap, self.zone, self.cfg.sim.stuck_speed, self.cfg.sim.stuck_distance)
+        self.tracker.observe(snap, {a: actions[a] for a in acting} if self.session.drive_avs else None, status)
         merged_now = status.merged and self._merged_at is None
         if merged_now:
             self._merged_at = snap.time
         rewards, terms, ego_u, social_u = self._rewards(snap, rows, lane_changed, invalid, status.row, merged_now)
         self._n_steps += 1
-        self._any_crash |= bool(snap.crashed.any())
         # A merging vehicle gone without merging can only have been taken off the road: over too.
         episode_over = status.crashed or status.stuck or (status.row < 0 and self._merged_at is None)
         time_up = self._n_steps >= self.max_steps
@@ -227,24 +233,10 @@ class MergeEnv(ParallelEnv):
 
     # -- summaries and rendering --------------------------------------------------------------------
     def episode_summary(self, snap: Snapshot, stuck: bool) -> dict[str, Any]:
-        """Outcome of the episode for metrics: crash, merge, distances by class [m]."""
-        by_class: dict[int, list[float]] = {KIND_AV: [], KIND_HV: [], KIND_MERGER: []}
-        for vid in self._start_ids:
-            by_class[kind_of(vid)].append(self._dist.get(vid, 0.0))
-        every = [d for ds in by_class.values() for d in ds]
-        return {
-            "seed": self.episode_seed,
-            "length": self._n_steps,
-            "time": float(snap.time),
-            "crashed": self._any_crash,
-            "merged": self._merged_at is not None,
-            "merge_failed": stuck,
-            "time_to_merge": math.nan if self._merged_at is None else self._merged_at,
-            "mean_distance": float(np.mean(every)) if every else 0.0,
-            "av_distance": float(np.mean(by_class[KIND_AV])) if by_class[KIND_AV] else 0.0,
-            "hv_distance": float(np.mean(by_class[KIND_HV])) if by_class[KIND_HV] else 0.0,
-            "merger_distance": float(by_class[KIND_MERGER][0]) if by_class[KIND_MERGER] else 0.0,
-        }
+        """Outcome of the episode for metrics: the tracker's row (length, time, crash, merge and time to merge,
+        distances [m] and speeds [m/s] by class over every vehicle seen, ...), the seed, and `merge_failed`
+        (the merging vehicle got `stuck`). `snap` is the last snapshot, which the tracker has seen."""
+        return {"seed": self.episode_seed, **self.tracker.row(), "merge_failed": stuck}
 
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array" or self._snap is None:

@@ -3,19 +3,23 @@
 Contract:
 - `mean_ci(values, confidence)` is the mean with a two-sided Student-t interval over the finite values
   (NaNs, e.g. the time to merge of an episode without a merge, are left out); with one value the interval
-  is NaN, with none the mean is NaN too. `summarize(rows)` applies it to every metric of `SUMMARY_METRICS`
-  over per-episode rows (dicts, as written to `episodes.csv`); the intervals of rates (crash %, merge %)
-  are clipped to [0, 100] %.
+  is NaN, with none the mean is NaN too. `rate_ci(values, confidence)` is the proportion of 0/1 values with
+  the Wilson score interval, which stays inside [0, 1] and has a width even at 0 or 1 (a t-interval would
+  collapse to [0, 0] when no episode crashed); it is defined from one value on. `summarize(rows)` applies
+  `rate_ci` to the rates of `RATE_METRICS` (crash %, merge success %) and `mean_ci` to every other metric
+  of `SUMMARY_METRICS`, over per-episode rows (dicts, as written to `episodes.csv`).
 - `Chainage.from_net(desc, road)` places every highway and ramp edge on one longitudinal axis [m]: highway
   edges at their start's distance from the first highway edge's start, ramp edges so that the ramp's end
   meets the merge edge's start. `Chainage.of(snap)` is each vehicle's front bumper on that axis (NaN on
   junction-internal and foreign edges).
 - `guide_av(snap)` is the AV nearest (centre to centre) to the merging vehicle, or None.
-- `EpisodeTracker(zone, chainage)` is fed every snapshot of an episode (`observe(snap, actions)`, the
-  reset snapshot first) and gives the episode's row (`row()`): crash (any, and by class), merge success and
-  time to merge, distance [m] and mean speed [m/s] by class (over every vehicle seen), the merging vehicle's
+- `EpisodeTracker(zone, chainage)` is fed every snapshot of an episode (`observe(snap, actions, status)`,
+  the reset snapshot first) and gives the episode's row (`row()`): its length in decision steps, crash
+  (any, and by class), merge success (`cosim.episode.merge_status`, the env's definition) and time to
+  merge, distance [m] and mean speed [m/s] by class (over every vehicle seen), the merging vehicle's
   distance, the guide AV (nearest the merging vehicle when it merges, else at its last appearance) and the
-  guide's actions. With `record=True` it also keeps per-step trajectories (`trajectory()`) for plots.
+  guide's actions. `MergeEnv` owns one (its `infos["episode"]` summary is its row); with `record=True` it
+  also keeps per-step trajectories (`trajectory()`) for plots.
 - `crossings(trajectory, s)` counts vehicles whose front crosses chainage `s`, the snapshot-side
   counterpart of an induction loop count.
 """
@@ -25,11 +29,12 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from statistics import NormalDist
 from typing import Any
 
 import numpy as np
 
-from cosim.episode import MergeZone
+from cosim.episode import MergeStatus, MergeZone, merge_status
 from cosim.netdesc import NetDescription
 from cosim.roadnet import RoadNet
 from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
@@ -50,6 +55,8 @@ SUMMARY_METRICS: dict[str, tuple[str, float]] = {
     "travel time [s]": ("travel_time", 1.0),
     "time loss [s]": ("time_loss", 1.0),
 }
+# Labels of SUMMARY_METRICS whose column is 0/1 per episode: Wilson score intervals, not t-intervals.
+RATE_METRICS: frozenset[str] = frozenset({"crash [%]", "merge success [%]"})
 
 
 # -- statistics ----------------------------------------------------------------------------------------
@@ -107,7 +114,7 @@ def t_quantile(p: float, df: float) -> float:
 @dataclass(frozen=True)
 class Interval:
     mean: float
-    low: float  # NaN with fewer than two values
+    low: float  # NaN with fewer than two values (a t-interval) or none (a rate's)
     high: float
     n: int  # finite values used
 
@@ -127,6 +134,24 @@ def mean_ci(values: Iterable[float], confidence: float = 0.95) -> Interval:
         return Interval(mean, math.nan, math.nan, 1)
     half = t_quantile(0.5 + confidence / 2.0, n - 1) * float(x.std(ddof=1)) / math.sqrt(n)
     return Interval(mean, mean - half, mean + half, n)
+
+
+def rate_ci(values: Iterable[float], confidence: float = 0.95) -> Interval:
+    """Proportion of ones among the finite 0/1 values, with its two-sided Wilson score interval.
+
+    Unlike a t-interval it is never zero-width at a rate of 0 or 1 and never leaves [0, 1]."""
+    x = np.asarray([float(v) for v in values], dtype=np.float64)
+    x = x[np.isfinite(x)]
+    if not np.all((x == 0.0) | (x == 1.0)):
+        raise ValueError(f"rate_ci: expected 0/1 values, got {sorted(set(x.tolist()) - {0.0, 1.0})[:3]}")
+    n = int(x.size)
+    if n == 0:
+        return Interval(math.nan, math.nan, math.nan, 0)
+    p = float(x.mean())
+    z2 = NormalDist().inv_cdf(0.5 + confidence / 2.0) ** 2
+    centre = (p + z2 / (2 * n)) / (1 + z2 / n)
+    half = math.sqrt(z2 * p * (1 - p) / n + z2 * z2 / (4 * n * n)) / (1 + z2 / n)
+    return Interval(p, max(centre - half, 0.0), min(centre + half, 1.0), n)  # max/min: rounding only
 
 
 def _number(value: Any) -> float:
@@ -149,15 +174,16 @@ def _number(value: Any) -> float:
 
 def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95,
               metrics: Mapping[str, tuple[str, float]] = SUMMARY_METRICS) -> dict[str, dict[str, float | int]]:
-    """Metric label -> {mean, ci_low, ci_high, n} over the episodes; metrics missing from the rows are left out."""
+    """Metric label -> {mean, ci_low, ci_high, n} over the episodes; metrics missing from the rows are left out.
+
+    Rates (`RATE_METRICS`) get Wilson score intervals, every other metric a t-interval (module doc)."""
     out = {}
     for label, (column, scale) in metrics.items():
         if not any(column in r for r in rows):
             continue
-        ci = mean_ci((_number(r.get(column)) * scale for r in rows), confidence)
-        if label.endswith("[%]") and ci.n > 1:  # a rate's interval cannot leave [0, 100] %
-            ci = Interval(ci.mean, max(ci.low, 0.0), min(ci.high, scale), ci.n)
-        out[label] = ci.as_dict()
+        values = [_number(r.get(column)) for r in rows]
+        ci = rate_ci(values, confidence) if label in RATE_METRICS else mean_ci(values, confidence)
+        out[label] = Interval(ci.mean * scale, ci.low * scale, ci.high * scale, ci.n).as_dict()
     return out
 
 
@@ -246,26 +272,33 @@ class EpisodeTracker:
         self._columns: dict[str, list[np.ndarray]] = {c: [] for c in TRAJECTORY_COLUMNS}
         self._vid_index: dict[str, int] = {}
 
-    def observe(self, snap: Snapshot, actions: Mapping[str, int] | None = None) -> None:
-        """`actions`: what each AV was told in the decision step that led to `snap` (None at reset)."""
+    def observe(self, snap: Snapshot, actions: Mapping[str, int] | None = None,
+                status: MergeStatus | None = None) -> None:
+        """`actions`: what each AV was told in the decision step that led to `snap` (None at reset);
+        `status`: `merge_status` of `snap` where the caller has it (the env does), else it is computed here.
+
+        One pass over the snapshot's vehicles: the env feeds every step through this."""
         self.steps += 1
         self.time = float(snap.time)
         for agent, a in (actions or {}).items():
             self.actions.setdefault(agent, []).append(int(a))
-        for vid, k, d, v, c in zip(snap.ids, snap.kind, snap.distance, snap.speed, snap.crashed, strict=True):
-            self.distance[vid] = float(d)
-            self.speed_sum[vid] = self.speed_sum.get(vid, 0.0) + float(v)
-            self.speed_n[vid] = self.speed_n.get(vid, 0) + 1
-            self.kind[vid] = int(k)
-            if c:
-                self.crashed.add(vid)
-        merger = np.flatnonzero(snap.kind == KIND_MERGER)
-        if self.merged_at is None and merger.size:
-            r = int(merger[0])
-            if self.zone.on_through_lane(snap.edge[r:r + 1], snap.lane[r:r + 1])[0] and not snap.crashed[r]:
-                self.merged_at = float(snap.time)
-            # The guide is fixed at the merge; until then it follows the merging vehicle's nearest AV.
-            self.guide = guide_av(snap) or self.guide
+        ids = snap.ids
+        self.distance.update(zip(ids, snap.distance.tolist(), strict=True))
+        self.kind.update(zip(ids, snap.kind.tolist(), strict=True))
+        speed_sum, speed_n = self.speed_sum, self.speed_n
+        for vid, v in zip(ids, snap.speed.tolist(), strict=True):
+            speed_sum[vid] = speed_sum.get(vid, 0.0) + v
+            speed_n[vid] = speed_n.get(vid, 0) + 1
+        if snap.crashed.any():
+            self.crashed.update(ids[i] for i in np.flatnonzero(snap.crashed))
+        if self.merged_at is None:
+            if status is None:  # the stuck test's thresholds do not matter here: only `merged` is read
+                status = merge_status(snap, self.zone, stuck_speed=0.0, stuck_distance=0.0)
+            if status.row >= 0:
+                if status.merged:
+                    self.merged_at = float(snap.time)
+                # The guide is fixed at the merge; until then it follows the merging vehicle's nearest AV.
+                self.guide = guide_av(snap) or self.guide
         if self.record:
             self._record(snap)
 
@@ -289,7 +322,7 @@ class EpisodeTracker:
         mean_speed = {v: self.speed_sum[v] / self.speed_n[v] for v in self.speed_sum}
         crashed_kinds = {self.kind[v] for v in self.crashed}
         row: dict[str, Any] = {
-            "steps": self.steps,
+            "length": self.steps,  # decision steps (the env's name)
             "time": self.time,
             "crashed": bool(self.crashed),
             **{f"crash_{name}": k in crashed_kinds for k, name in CLASS_NAMES.items()},

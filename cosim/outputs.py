@@ -3,6 +3,10 @@
 Contract:
 - `detector_site(desc, road, offset)`: induction loops on every lane of the last highway edge, `offset` [m]
   past its start (clipped into the edge), placed from the net description, never from edge ids in code.
+- `episode_folder(root, seed, busy)` names an episode's folder: `root/episode_{seed}`, or
+  `root/episode_{seed}_1` when that is `busy`, the previous episode's folder (a reset with the same seed
+  again): SUMO opens the new files at the reload, before the previous episode's are parsed, and must not
+  truncate them.
 - `episode_output_args(folder, site)` writes `folder/detectors.add.xml` and returns the SUMO options that
   make one episode write `folder/tripinfo.xml` (unfinished vehicles included, so a time-limited episode
   reports every vehicle) and `folder/detectors.xml`. SUMO completes these files only when the simulation
@@ -44,6 +48,12 @@ def detector_site(desc: NetDescription, road: RoadNet, offset: float) -> Detecto
     pos = min(max(offset, 0.0), max(length - 0.5, 0.0))
     lanes = tuple(lane.id for lane in road.edge(edge).lanes)
     return DetectorSite(edge, lanes, pos, desc.highway_offsets(road)[edge] + pos)
+
+
+def episode_folder(root: Path, seed: int, busy: Path | None = None) -> Path:
+    """The output folder of an episode with `seed`, never `busy` (the previous episode's, not yet parsed)."""
+    folder = root / f"episode_{seed}"
+    return folder if folder != busy else root / f"episode_{seed}_1"
 
 
 def episode_output_args(folder: Path, site: DetectorSite, period: float = 1e6) -> list[str]:

@@ -11,10 +11,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
-from agents.checkpoint import CheckpointError, save_checkpoint
+from agents.checkpoint import CheckpointError, act_agents, save_checkpoint
 from agents.compare import compare
-from agents.evaluate import CHECKPOINT, Job, PolicySpec, evaluate, evaluate_config, read_rows, run_episodes
+from agents.evaluate import (
+    CHECKPOINT,
+    Job,
+    PolicySpec,
+    evaluate,
+    evaluate_config,
+    read_rows,
+    run_episodes,
+    summarize_evaluation,
+)
 from agents.model import ActorCritic
 from cosim.cli import main
 from cosim.config import load_config
@@ -43,7 +53,8 @@ def idle_eval(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_evaluation_files_and_summary(idle_eval: Path) -> None:
     rows = read_rows(idle_eval / "episodes.csv")
     assert [int(r["seed"]) for r in rows] == [100, 101, 102]
-    for key in ("crashed", "crash_av", "crash_hv", "crash_merger", "merged", "time_to_merge", "av_distance",
+    for key in ("length", "crashed", "crash_av", "crash_hv", "crash_merger", "merged", "merge_failed",
+                "time_to_merge", "mean_distance", "av_distance",
                 "hv_distance", "merger_distance", "av_speed", "guide_av", "guide_actions", "throughput_vph",
                 "time_loss", "travel_time", "distance_check"):
         assert key in rows[0], key
@@ -74,6 +85,40 @@ def test_resume_skips_done_episodes_and_drops_a_partial_row(idle_eval: Path, tmp
         evaluate(_cfg(), PolicySpec("random"), out, episodes=1, seed=100, plots=False)
 
 
+def test_resume_with_another_config_is_refused(idle_eval: Path, tmp_path: Path) -> None:
+    out = tmp_path / "other"
+    shutil.copytree(idle_eval, out)
+    before = (out / "episodes.csv").read_text()
+    with pytest.raises(ConfigError, match=f"{out}.*another config"):
+        evaluate(_cfg("reward.phi=0.5"), PolicySpec("idle"), out, episodes=4, seed=100, plots=False)
+    assert (out / "episodes.csv").read_text() == before  # nothing of the other config mixed in
+    # A folder from before the hash was stored: its config.yaml is hashed instead.
+    meta = json.loads((out / "evaluation.json").read_text())
+    del meta["config_sha256"]
+    (out / "evaluation.json").write_text(json.dumps(meta))
+    with pytest.raises(ConfigError, match="another config"):
+        evaluate(_cfg("reward.phi=0.5"), PolicySpec("idle"), out, episodes=4, seed=100, plots=False)
+    evaluate(_cfg(), PolicySpec("idle"), out, episodes=3, seed=100, plots=False)  # the same config resumes
+
+
+def test_evaluate_and_compare_summarise_the_same_rows(idle_eval: Path, tmp_path: Path) -> None:
+    out = tmp_path / "extra"
+    shutil.copytree(idle_eval, out)
+    # Rows of seeds this evaluation did not ask for (another --seed into the same folder, say).
+    rows = read_rows(out / "episodes.csv")
+    with (out / "episodes.csv").open("a", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        for k in range(5):
+            w.writerow({**rows[0], "seed": 500 + k, "crashed": "True", "mean_distance": "1.0"})
+    summary = evaluate(_cfg(), PolicySpec("idle"), out, episodes=3, seed=100, trajectories=0, plots=False)
+    picked, metrics = summarize_evaluation(out, 100, 3)
+    same = json.dumps(summary["metrics"], sort_keys=True)  # as text: NaN == NaN
+    assert [int(r["seed"]) for r in picked] == [100, 101, 102] and json.dumps(metrics, sort_keys=True) == same
+    result = compare([out], tmp_path / "report")
+    assert result["extra"]["episodes"] == summary["episodes"] == 3
+    assert json.dumps(result["extra"]["metrics"], sort_keys=True) == same
+
+
 @pytest.mark.parametrize("net", ["default", "two_lane"])
 @pytest.mark.parametrize("policy", ["sumo", "random"])
 def test_baselines_on_two_nets(net: str, policy: str, two_lane_net: Path, tmp_path: Path) -> None:
@@ -100,6 +145,22 @@ def _tiny_checkpoint(path: Path, obs_shape: tuple[int, ...]) -> None:
     save_checkpoint(path, {"spec": spec, "policy": {"nets": [net.state_dict()]}, "counters": {}, "rng": {}})
 
 
+def test_act_agents_batches_agents_sharing_a_network() -> None:
+    shape = (2, 3, 8, 8)
+    shared, own = ActorCritic(shape, 5, feature_dim=8, head_hidden=8), ActorCritic(shape, 5, feature_dim=8,
+                                                                                  head_hidden=8)
+    policies = {"av_0": shared, "av_1": shared, "av_2": own}
+    calls = []
+    for net in (shared, own):
+        net.register_forward_hook(lambda m, args, out: calls.append(args[0].shape[0]))
+    obs = {a: np.random.default_rng(i).random(shape, dtype=np.float32) for i, a in enumerate(policies)}
+    actions = act_agents(policies, obs, greedy=True)
+    assert sorted(calls) == [1, 2]  # one forward per network
+    for a, net in policies.items():
+        assert actions[a] == int(net(torch.from_numpy(obs[a][None]))[0].argmax())
+    assert set(act_agents(policies, {"av_2": obs["av_2"]}, greedy=False)) == {"av_2"}  # live agents only
+
+
 def test_checkpoint_policy_and_a_mismatched_one(tmp_path: Path) -> None:
     cfg = _cfg()
     shape = (cfg.observation.frames, len(cfg.observation.channels), cfg.observation.height_px,
@@ -124,6 +185,13 @@ def test_bad_input_is_a_clear_error(tmp_path: Path, two_lane_net: Path, caplog) 
     assert main(["evaluate", "--run", str(run), "--episodes", "1"]) == 2
     assert "checkpoint" in caplog.text and "not found" in caplog.text
     assert main(["evaluate", "--run", str(tmp_path / "nothing")]) == 2
+    for flag, value in (("--episodes", "0"), ("--episodes", "-2"), ("--trajectories", "-1"), ("--workers", "0")):
+        caplog.clear()
+        assert main(["evaluate", "--policy", "idle", flag, value, "--out", str(tmp_path / "ev0")]) == 2
+        assert f"{flag}: must be >=" in caplog.text and f"got {value}" in caplog.text
+        assert not (tmp_path / "ev0").exists()
+    with pytest.raises(ConfigError, match="episodes: must be >= 1"):
+        evaluate(_cfg(), PolicySpec("idle"), tmp_path / "ev0", episodes=0, plots=False)
     with pytest.raises(ConfigError, match="evaluate.episode"):
         evaluate_config({"episode": 3})
     # A net without a merge: the 2-lane net with its ramp taken out.

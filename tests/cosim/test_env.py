@@ -14,6 +14,7 @@ import cosim
 from cosim.control import Action
 from cosim.env import MergeEnv
 from cosim.errors import SimulationError
+from cosim.metrics import EpisodeTracker
 from cosim.policies import scripted_policy
 
 SMALL = {"scenario.n_avs": 3, "scenario.n_hvs": 6}
@@ -284,3 +285,31 @@ def test_lane_change_does_not_follow_the_av_onto_the_acceleration_lane() -> None
     finally:
         env.close()
     assert seen[-1] == (env.desc.merge_edge, 1), seen  # hw_in lane 0 continues as the merge edge's lane 1
+
+
+
+def test_episode_summary_is_the_trackers_row_over_every_vehicle() -> None:
+    env = cosim.parallel_env("configs/default.yaml", {**SMALL, "scenario.inflow": 1800.0})
+    try:
+        env.reset(seed=4)
+        at_reset = set(env.snapshot.ids)
+        mine = EpisodeTracker(env.zone, env.chainage)  # fed from outside, as an evaluation would
+        mine.observe(env.snapshot)
+        policy = scripted_policy()
+        while env.agents:
+            actions = policy(env)
+            _, _, _, _, info = env.step(actions)
+            mine.observe(env.snapshot, actions)
+    finally:
+        env.close()
+    summary = next(iter(info.values()))["episode"]
+    # The keys the trainer's logs read, and one implementation behind them all.
+    for key in ("seed", "length", "time", "crashed", "merged", "merge_failed", "time_to_merge", "mean_distance",
+                "av_distance", "hv_distance", "merger_distance"):
+        assert key in summary, key
+    row = mine.row()
+    assert {k: summary[k] for k in row} == pytest.approx(row, nan_ok=True)
+    assert summary["seed"] == 4 and summary["length"] > 0
+    # Vehicles inserted after the reset (the inflow) count too.
+    assert set(mine.distance) > at_reset
+    assert summary["mean_distance"] == pytest.approx(np.mean(list(mine.distance.values())))

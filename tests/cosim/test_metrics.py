@@ -8,8 +8,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cosim.episode import MergeZone
-from cosim.metrics import Chainage, EpisodeTracker, crossings, format_table, guide_av, mean_ci, summarize, t_quantile
+from cosim.episode import MergeStatus, MergeZone
+from cosim.metrics import (
+    Chainage,
+    EpisodeTracker,
+    crossings,
+    format_table,
+    guide_av,
+    mean_ci,
+    rate_ci,
+    summarize,
+    t_quantile,
+)
 from cosim.netdesc import load_net_description
 from cosim.roadnet import load_roadnet
 from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
@@ -44,18 +54,44 @@ def test_summarize_hand_built_records() -> None:
     ]
     s = summarize(rows)
     assert s["crash [%]"]["mean"] == 25.0 and s["merge success [%]"]["mean"] == 75.0
-    # crash: sd of (100, 0, 0, 0) is 50, half width t(0.975, 3) * 50 / 2 = 79.55, clipped to [0, 100] %
-    assert s["crash [%]"]["ci_low"] == 0.0 and s["crash [%]"]["ci_high"] == 100.0
+    # Rates get Wilson score intervals: 1 of 4 -> [4.56, 69.94] % (a t-interval would be clipped to [0, 100])
+    assert s["crash [%]"]["ci_low"] == pytest.approx(4.56, abs=0.01)
+    assert s["crash [%]"]["ci_high"] == pytest.approx(69.94, abs=0.01)
+    assert s["merge success [%]"]["ci_low"] == pytest.approx(100 - 69.94, abs=0.01)
     d = s["mean distance [m]"]
     half = 3.1824 * np.std([100, 200, 300, 400], ddof=1) / 2
     assert d["mean"] == 250.0 and d["ci_high"] == pytest.approx(250 + half, abs=1e-2)
     assert s["time to merge [s]"]["n"] == 3 and s["time to merge [s]"]["mean"] == pytest.approx(7.0)
     assert "throughput [veh/h]" not in s  # not in the rows: left out
     one = summarize([{"crashed": True, "merged": True, "mean_distance": 5.0}])
-    assert one["crash [%]"]["mean"] == 100.0 and math.isnan(one["crash [%]"]["ci_low"])
+    # One episode: a rate still has a Wilson interval, a continuous metric has none.
+    assert one["crash [%]"]["mean"] == 100.0 and one["crash [%]"]["ci_low"] == pytest.approx(20.65, abs=0.01)
+    assert math.isnan(one["mean distance [m]"]["ci_low"])
     table = format_table({"A": s, "B": one}, {"A": 4, "B": 1})
     assert "crash [%]" in table and "A (n=4)" in table and "B (n=1)" in table
     assert format_table({"A": s}, {"A": 4}, markdown=True).startswith("| metric")
+
+
+@pytest.mark.parametrize(("k", "n", "low", "high"), [(0, 10, 0.0, 0.2775), (10, 10, 0.7225, 1.0),
+                                                   (1, 4, 0.0456, 0.6994), (50, 100, 0.4038, 0.5962)])
+def test_rate_ci_is_the_wilson_score_interval(k: int, n: int, low: float, high: float) -> None:
+    ci = rate_ci([1] * k + [0] * (n - k))
+    assert ci.mean == k / n and ci.n == n
+    assert ci.low == pytest.approx(low, abs=1e-4) and ci.high == pytest.approx(high, abs=1e-4)
+    assert rate_ci([1, 0, 1], confidence=0.99).high > rate_ci([1, 0, 1], confidence=0.9).high
+    assert math.isnan(rate_ci([]).mean) and rate_ci([math.nan, 1.0]).n == 1
+    with pytest.raises(ValueError, match="0/1"):
+        rate_ci([0.5, 1.0])
+
+
+def test_rates_of_none_or_all_episodes_keep_a_width() -> None:
+    # No crash in 20 episodes is not "0 % for sure": the t-interval would be [0, 0].
+    s = summarize([{"crashed": "False", "merged": "True", "mean_distance": "100"}] * 20)
+    assert s["crash [%]"]["mean"] == 0.0 and s["crash [%]"]["ci_low"] == 0.0
+    assert s["crash [%]"]["ci_high"] == pytest.approx(16.11, abs=0.01)
+    assert s["merge success [%]"]["ci_high"] == 100.0
+    assert s["merge success [%]"]["ci_low"] == pytest.approx(100 - 16.11, abs=0.01)
+    assert (s["mean distance [m]"]["ci_low"], s["mean distance [m]"]["ci_high"]) == (100.0, 100.0)  # t-interval
 
 
 def _snap(t: float, ids: list[str], kinds: list[int], x: list[float], edge: list[int], lane: list[int],
@@ -98,7 +134,7 @@ def test_tracker_crash_merge_distance_guide() -> None:
     tr.observe(_snap(3.1, ["av_0", "merger"], [KIND_AV, KIND_MERGER], [100, 98], [1, 1], [1, 1], [100, 68]),
                {"av_0": 1})
     row = tr.row()
-    assert row["steps"] == 3 and row["crashed"] and row["crash_av"] and row["crash_hv"]
+    assert row["length"] == 3 and row["crashed"] and row["crash_av"] and row["crash_hv"]
     assert not row["crash_merger"] and row["n_crashed"] == 2
     assert row["merged"] and row["time_to_merge"] == pytest.approx(2.1)
     assert row["av_distance"] == pytest.approx((100 + 55) / 2) and row["hv_distance"] == 40
@@ -120,6 +156,21 @@ def test_tracker_without_merge() -> None:
     row = tr.row()
     assert not row["merged"] and math.isnan(row["time_to_merge"]) and row["crash_merger"] and not row["crash_av"]
     assert row["guide_av"] == "av_0"
+
+
+def test_tracker_merge_is_the_envs_merge_status() -> None:
+    ids, kinds = ["av_0", "merger"], [KIND_AV, KIND_MERGER]
+    # On a through lane but crashed: `merge_status` says not merged, and so does the tracker.
+    tr = EpisodeTracker(ZONE, CHAIN)
+    tr.observe(_snap(0.1, ids, kinds, [0, 10], [0, 1], [1, 0], [0, 0]))
+    tr.observe(_snap(1.1, ids, kinds, [20, 150], [0, 1], [1, 1], [20, 9], crashed=[False, True]), {"av_0": 1})
+    assert not tr.row()["merged"]
+    # A status handed in (the env's, computed once per step) is what counts.
+    tr = EpisodeTracker(ZONE, CHAIN)
+    tr.observe(_snap(0.1, ids, kinds, [0, 10], [0, 1], [1, 0], [0, 0]))
+    tr.observe(_snap(1.1, ids, kinds, [20, 50], [0, 1], [1, 0], [20, 9]), {"av_0": 1},
+               MergeStatus(row=1, merged=True, stuck=False, crashed=False))
+    assert tr.row()["merged"] and tr.row()["time_to_merge"] == pytest.approx(1.1)
 
 
 def test_crossings_counts_front_passes() -> None:

@@ -14,6 +14,7 @@ from cosim.outputs import (
     DETECTOR_FILE,
     TRIPINFO_FILE,
     detector_site,
+    episode_folder,
     episode_output_args,
     read_detectors,
     read_episode_outputs,
@@ -52,6 +53,32 @@ def test_incomplete_or_missing_outputs_are_clear_errors(tmp_path: Path) -> None:
         read_episode_outputs(tmp_path, 20.0)
     with pytest.raises(SimulationError, match="not found"):
         read_detectors(tmp_path / "nope.xml")
+
+
+def test_episode_folder_is_never_the_previous_episodes(tmp_path: Path) -> None:
+    assert episode_folder(tmp_path, 3) == tmp_path / "episode_3"
+    assert episode_folder(tmp_path, 3, busy=tmp_path / "episode_2") == tmp_path / "episode_3"
+    assert episode_folder(tmp_path, 3, busy=tmp_path / "episode_3") == tmp_path / "episode_3_1"
+    assert episode_folder(tmp_path, 3, busy=tmp_path / "episode_3_1") == tmp_path / "episode_3"
+
+
+def test_resets_with_the_same_seed_keep_both_episodes_outputs(tmp_path: Path) -> None:
+    env = cosim.parallel_env("configs/default.yaml", {"sim.outputs": True, "sim.output_dir": str(tmp_path),
+                                                     "sim.horizon": 5.0})
+    n_trips = []
+    try:
+        for k in range(3):
+            env.reset(seed=3)
+            if k:  # the reload completed the previous episode's files; they must not be truncated first
+                n_trips.append(env.sumo_outputs.pop(3).n_trips)
+            while env.agents:
+                env.step(dict.fromkeys(env.agents, 1))
+        env.flush_outputs()
+        n_trips.append(env.sumo_outputs.pop(3).n_trips)
+    finally:
+        env.close()
+    assert len(n_trips) == 3 and len(set(n_trips)) == 1 and n_trips[0] > 0  # one seed: the same, whole episode
+    assert (tmp_path / "episode_3" / TRIPINFO_FILE).is_file() and (tmp_path / "episode_3_1" / TRIPINFO_FILE).is_file()
 
 
 def test_detectors_cover_every_lane_of_the_last_highway_edge(two_lane_net: Path, tmp_path: Path) -> None:
