@@ -13,6 +13,7 @@ import logging
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -65,13 +66,20 @@ def _bare(base_args: list[str], routes: Path, steps_per_decision: int, decisions
         return [*base_args, "-r", str(routes / f"episode_{ep}.rou.xml"), "--seed", str(ep)]
 
     ls.start(["sumo", *args(0)])
+    veh = ls.vehicle
+    var = ls.constants
+    codes = [var.VAR_POSITION, var.VAR_ANGLE, var.VAR_SPEED, var.VAR_ROAD_ID, var.VAR_LANE_INDEX,
+             var.VAR_LANEPOSITION, var.VAR_DISTANCE]
     out = {}
     try:
-        def run(read) -> float:
+        def run(read: Callable[[], object], subscribe: bool = False) -> float:
             dt = 0.0
             for ep in range(episodes):
                 ls.load(args(ep))
                 ls.simulationStep()
+                if subscribe:  # every vehicle departs at t = 0; SUMO refreshes the results at every step
+                    for v in veh.getIDList():
+                        veh.subscribe(v, codes)
                 t0 = time.perf_counter()
                 for _ in range(decisions):
                     for _ in range(steps_per_decision):
@@ -80,24 +88,13 @@ def _bare(base_args: list[str], routes: Path, steps_per_decision: int, decisions
                 dt += time.perf_counter() - t0
             return dt / (episodes * decisions)
 
-        veh = ls.vehicle
-
         def getters() -> None:
             for v in veh.getIDList():
                 veh.getPosition(v), veh.getAngle(v), veh.getSpeed(v), veh.getRoadID(v)
                 veh.getLaneIndex(v), veh.getLanePosition(v), veh.getDistance(v)
 
         out["getters"] = run(getters)
-        var = ls.constants
-        codes = [var.VAR_POSITION, var.VAR_ANGLE, var.VAR_SPEED, var.VAR_ROAD_ID, var.VAR_LANE_INDEX,
-                 var.VAR_LANEPOSITION, var.VAR_DISTANCE]
-
-        def subscribed() -> None:
-            for v in ls.simulation.getDepartedIDList():
-                veh.subscribe(v, codes)
-            veh.getAllSubscriptionResults()
-
-        out["subscriptions"] = run(subscribed)
+        out["subscriptions"] = run(veh.getAllSubscriptionResults, subscribe=True)
         t0 = time.perf_counter()
         for k in range(resets):
             ls.load(args(k % episodes))
