@@ -13,6 +13,8 @@ import logging
 import sys
 from collections.abc import Sequence
 
+from tqdm.contrib.logging import logging_redirect_tqdm
+
 from cosim.errors import CosimError
 
 # subcommand -> (module, one-line help)
@@ -44,7 +46,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.DEBUG if args.verbose or head.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
     try:
-        return int(module.run(args) or 0)
+        with logging_redirect_tqdm():  # log lines above progress bars, not through them
+            return int(module.run(args) or 0)
     except CosimError as exc:
         logging.getLogger("cosim").error("%s", exc)
         return 2

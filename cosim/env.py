@@ -274,8 +274,9 @@ class MergeEnv(ParallelEnv):
             session.close()
 
 
-def parallel_env(config: str | Path | Mapping[str, Any] | Config | None = "configs/default.yaml",
+def parallel_env(config: str | Path | Mapping[str, Any] | Config | None = None,
                  overrides: Mapping[str, Any] | list[str] | None = None,
                  render_mode: str | None = None) -> MergeEnv:
-    """The PettingZoo way: `cosim.parallel_env(config="configs/default.yaml", overrides={"reward.phi": 0.785})`."""
+    """The PettingZoo way: `cosim.parallel_env(config="configs/default.yaml", overrides={"reward.phi": 0.785})`;
+    without a config, the built-in defaults on the bundled merge net."""
     return MergeEnv(load_config(config, overrides), render_mode=render_mode)
