@@ -112,12 +112,8 @@ class MergeEnv(ParallelEnv):
         snap = self.session.snapshot()
         rows = snap.rows_of(self.possible_agents)
         self._target = np.where(rows >= 0, snap.speed[np.maximum(rows, 0)], 0.0)
-        self._dist = dict(zip(snap.ids, snap.distance, strict=True))
-        self._speed = dict(zip(snap.ids, snap.speed, strict=True))
         self.tracker = EpisodeTracker(self.zone, self.chainage)
         self.tracker.observe(snap)
-        self._merged_at: float | None = None
-        self._n_steps = 0
         self.mapper.reset()
         self.mapper.update(snap, rows)
         self._snap = snap
@@ -139,15 +135,14 @@ class MergeEnv(ParallelEnv):
         rows = snap.rows_of(self.possible_agents)
         self.mapper.update(snap, rows)
         status = merge_status(snap, self.zone, self.cfg.sim.stuck_speed, self.cfg.sim.stuck_distance)
+        merged_before = self.tracker.merged_at is not None
         self.tracker.observe(snap, {a: actions[a] for a in acting} if self.session.drive_avs else None, status)
-        merged_now = status.merged and self._merged_at is None
-        if merged_now:
-            self._merged_at = snap.time
-        rewards, terms, ego_u, social_u = self._rewards(snap, rows, lane_changed, invalid, status.row, merged_now)
-        self._n_steps += 1
+        merged = self.tracker.merged_at is not None
+        rewards, terms, ego_u, social_u = self._rewards(prev, snap, rows, lane_changed, invalid, status.row,
+                                                        merged and not merged_before)
         # A merging vehicle gone without merging can only have been taken off the road: over too.
-        episode_over = status.crashed or status.stuck or (status.row < 0 and self._merged_at is None)
-        time_up = self._n_steps >= self.max_steps
+        episode_over = status.crashed or status.stuck or (status.row < 0 and not merged)
+        time_up = self.tracker.steps >= self.max_steps
         obs, rew, term, trunc, infos = {}, {}, {}, {}, {}
         for a in acting:
             i = self.possible_agents.index(a)
@@ -159,7 +154,7 @@ class MergeEnv(ParallelEnv):
             rew[a] = float(rewards[i])
             infos[a] = {"reward_terms": {k: float(v[i]) for k, v in terms.items()},
                         "ego_utility": float(ego_u[i]), "social_utility": float(social_u[i]),
-                        "invalid_action": bool(invalid[i]), "merged": self._merged_at is not None}
+                        "invalid_action": bool(invalid[i]), "merged": merged}
         self.agents = [a for a in acting if not (term[a] or trunc[a])]
         if self.cfg.sim.remove_crashed and snap.crashed.any():
             self.session.remove([v for v, c in zip(snap.ids, snap.crashed, strict=True) if c])
@@ -206,13 +201,15 @@ class MergeEnv(ParallelEnv):
             targets = {}
         self.session.advance(self.cfg.steps_per_decision, targets, av.accel, av.decel, av.max_speed)
 
-    def _rewards(self, snap: Snapshot, rows: np.ndarray, lane_changed: np.ndarray, invalid: np.ndarray,
-                 merger_row: int, merged_now: bool) -> tuple[np.ndarray, dict, np.ndarray, np.ndarray]:
+    def _rewards(self, prev: Snapshot, snap: Snapshot, rows: np.ndarray, lane_changed: np.ndarray,
+                 invalid: np.ndarray, merger_row: int, merged_now: bool
+                 ) -> tuple[np.ndarray, dict, np.ndarray, np.ndarray]:
         period = self.cfg.sim.decision_period
-        prev_d = np.array([self._dist.get(v, 0.0) for v in snap.ids])
-        prev_v = np.array([self._speed.get(v, s) for v, s in zip(snap.ids, snap.speed, strict=True)])
-        self._dist.update(zip(snap.ids, snap.distance, strict=True))
-        self._speed.update(zip(snap.ids, snap.speed, strict=True))
+        # Progress and speed change since the previous snapshot; a vehicle inserted since starts at 0 m.
+        before = prev.rows_of(snap.ids)
+        seen = before >= 0
+        prev_d, prev_v = np.zeros(len(snap)), snap.speed.copy()
+        prev_d[seen], prev_v[seen] = prev.distance[before[seen]], prev.speed[before[seen]]
         v_lane, v_invalid, v_merged = (np.zeros(len(snap), dtype=bool) for _ in range(3))
         present = rows >= 0
         v_lane[rows[present]] = lane_changed[present]
