@@ -126,7 +126,9 @@ class SumoSession:
             ls.vehicle.setSpeed(vid, 0.0)
             self._commanded.pop(vid, None)
         self._crashed.update(new)
-        self._arrived.update(ls.simulation.getArrivedIDList())
+        for vid in ls.simulation.getArrivedIDList():
+            self._arrived.add(vid)
+            self._commanded.pop(vid, None)
         for vid in ls.simulation.getDepartedIDList():
             self._on_insert(vid)
 
@@ -138,7 +140,8 @@ class SumoSession:
             # The env drives AVs: no SUMO lane changing, no safety checks, so AVs can crash.
             ls.vehicle.setLaneChangeMode(vid, 0)
             ls.vehicle.setSpeedMode(vid, 0)
-            self._commanded[vid] = ls.vehicle.getSpeed(vid)
+            self._commanded[vid] = speed = ls.vehicle.getSpeed(vid)
+            ls.vehicle.setSpeed(vid, speed)  # held from now on, not left to the car-following model
 
     def advance(self, n_steps: int, target_speed: dict[str, float], accel: float, decel: float,
                 max_speed: float) -> None:
@@ -148,17 +151,20 @@ class SumoSession:
         before = set(self._crashed)
         self._arrived.clear()
         dv_up, dv_down = accel * self.step_length, decel * self.step_length
+        # SUMO keeps the last setSpeed: only AVs still on their way to the target need a command.
+        ramping = {v: t for v, t in target_speed.items() if self._commanded.get(v, t) != t}
         for _ in range(n_steps):
-            for vid, target in target_speed.items():
+            for vid, target in list(ramping.items()):
                 v = self._commanded.get(vid)
                 if v is None:  # crashed or gone
+                    del ramping[vid]
                     continue
                 v = min(max(v + min(max(target - v, -dv_down), dv_up), 0.0), max_speed)
                 self._commanded[vid] = v
                 ls.vehicle.setSpeed(vid, v)
+                if v == target:  # the last increment lands exactly on the target
+                    del ramping[vid]
             self._sim_step()
-            for vid in self._arrived:
-                self._commanded.pop(vid, None)
         self._crashed_period = self._crashed - before
 
     def change_lane(self, vid: str, direction: int) -> None:
