@@ -32,11 +32,21 @@ def render_scene(road: RoadRaster, snap: Snapshot, mapper: VelocityMapper, cfg: 
     return np.concatenate([top, gap, panel], axis=0)
 
 
-def _top_view(road: RoadRaster, snap: Snapshot) -> np.ndarray:
-    """The whole road at SCENE_RES, vehicles as footprint rectangles, +y up."""
+def _top_view(road: RoadRaster, snap: Snapshot, margin: float = 25.0, min_length: float = 250.0) -> np.ndarray:
+    """The road around the vehicles at SCENE_RES (at least `min_length` [m] long), vehicles as footprint
+    rectangles, +y up."""
     step = max(1, round(SCENE_RES / road.resolution))
     grid = road.grid[::step, ::step] != 0
     res = road.resolution * step
+    if len(snap):  # crop to the vehicles, so that they are not specks on a kilometre of road
+        x0, x1 = snap.x.min() - margin, snap.x.max() + margin
+        pad = max(0.0, min_length - (x1 - x0)) / 2
+        j0 = max(0, int((x0 - pad - road.origin[0]) / res))
+        j1 = min(grid.shape[1], int((x1 + pad - road.origin[0]) / res) + 1)
+        rows = np.flatnonzero(grid[:, j0:j1].any(axis=1))
+        i0, i1 = (max(0, rows[0] - 4), rows[-1] + 5) if rows.size else (0, grid.shape[0])
+        grid = grid[i0:i1, j0:j1]
+        road = RoadRaster(grid, (road.origin[0] + j0 * res, road.origin[1] + i0 * res), res)
     img = np.empty(grid.shape + (3,), dtype=np.uint8)
     img[:] = BACKGROUND
     img[grid] = ROAD
