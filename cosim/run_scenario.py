@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import shutil
+from pathlib import Path
 
 from tqdm import tqdm
 
@@ -20,6 +22,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy", choices=sorted(POLICIES), action="append",
                         help="policy to run, repeatable (default: scripted and random)")
     parser.add_argument("--seed", type=int, default=None, help="first episode's seed (default: config)")
+    parser.add_argument("--save-routes", type=Path, default=None, metavar="DIR",
+                        help="keep each episode's SUMO route file (vTypes, routes, vehicles) here, e.g. to "
+                             "open it with sumo-gui -n NET -r DIR/episode_SEED.rou.xml")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -30,6 +35,9 @@ def run(args: argparse.Namespace) -> int:
             policy = POLICIES[name](first_seed)
             for ep in tqdm(range(args.episodes), desc=name, unit="ep", leave=False):
                 env.reset(seed=first_seed + ep)
+                if args.save_routes is not None:
+                    args.save_routes.mkdir(parents=True, exist_ok=True)
+                    shutil.copy(env.route_file, args.save_routes / f"episode_{env.episode_seed}.rou.xml")
                 infos: dict = {}
                 while env.agents:
                     _, _, _, _, infos = env.step(policy(env))

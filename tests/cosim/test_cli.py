@@ -14,9 +14,11 @@ def test_build_net_then_run_scenario_on_it(tmp_path: Path, caplog: pytest.LogCap
     out = tmp_path / "my_merge"
     assert main(["build-net", "--lanes", "2", "--accel-length", "80", "--out", str(out)]) == 0
     assert (out / "merge.net.xml").is_file() and (out / "merge.yaml").is_file()
-    assert main(["run-scenario", "--episodes", "1", "--policy", "random",
+    assert main(["run-scenario", "--episodes", "1", "--policy", "random", "--save-routes", str(tmp_path / "routes"),
                  "--set", f"net.file={out / 'merge.net.xml'}", "--set", "scenario.n_hvs=4"]) == 0
     assert "random   seed 0" in caplog.text
+    routes = (tmp_path / "routes" / "episode_0.rou.xml").read_text()
+    assert routes.count("<vehicle ") == 4 + 4 + 1 and 'carFollowModel="IDM"' in routes
 
 
 def test_bench_prints_ratios(capsys: pytest.CaptureFixture[str]) -> None:
