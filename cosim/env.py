@@ -3,11 +3,12 @@
 Contract: agents `av_0 .. av_{N-1}` drive with the paper's 5 meta-actions (`cosim.control.Action`) and
 observe a stacked VelocityMap (frames, channels, height, width); rewards are the SVO rewards of
 `cosim.reward`, with every weighted term in `infos[agent]["reward_terms"]`. An agent terminates when its
-AV crashes or leaves the net; all agents terminate when the merging vehicle crashes or gets stuck at the
-end of the acceleration lane; all are truncated at the horizon. On the last step every agent's info
-carries `"episode"`, the episode's summary: the row of the `cosim.metrics.EpisodeTracker` the env feeds
-every snapshot (`env.tracker`), with the seed and whether the merge failed. Observations are read-only views
-valid until the next step.
+AV crashes or leaves the net. The episode is cut (every live agent truncated) at the horizon and when the
+merging vehicle crashes or gets stuck at the end of the acceleration lane: the AVs' own driving did not
+end there, so a learner bootstraps, and an egoistic AV gains nothing from keeping the episode alive.
+On the last step every agent's info carries `"episode"`, the episode's summary: the row of the
+`cosim.metrics.EpisodeTracker` the env feeds every snapshot (`env.tracker`), with the seed and whether the
+merge failed. Observations are read-only views valid until the next step.
 
 `step` is a template of small hooks: act -> simulate -> snapshot -> observe -> reward -> end.
 
@@ -141,15 +142,15 @@ class MergeEnv(ParallelEnv):
         rewards, terms, ego_u, social_u = self._rewards(prev, snap, rows, lane_changed, invalid, status.row,
                                                         merged and not merged_before)
         # A merging vehicle gone without merging can only have been taken off the road: over too.
-        episode_over = status.crashed or status.stuck or (status.row < 0 and not merged)
-        time_up = self.tracker.steps >= self.max_steps
+        cut = (status.crashed or status.stuck or (status.row < 0 and not merged)
+               or self.tracker.steps >= self.max_steps)
         obs, rew, term, trunc, infos = {}, {}, {}, {}, {}
         for a in acting:
             i = self.possible_agents.index(a)
             r = rows[i]
             gone = r < 0 or bool(snap.crashed[r])
-            term[a] = gone or episode_over
-            trunc[a] = time_up and not term[a]
+            term[a] = gone
+            trunc[a] = cut and not gone
             obs[a] = self.mapper.observation(i)
             rew[a] = float(rewards[i])
             infos[a] = {"reward_terms": {k: float(v[i]) for k, v in terms.items()},
