@@ -76,8 +76,8 @@ class MergeEnv(ParallelEnv):
         self._next_seed = config.sim.seed
         self._tmp = Path(tempfile.mkdtemp(prefix="cosim_"))
         self.route_file = self._tmp / "episode.rou.xml"  # this episode's vehicles, rewritten at reset
-        self.session = SumoSession(Path(config.net.file), config.sim.step_length, config.sim.sumo_args,
-                                   config.sim.collision_mingap_factor, self.road.edge_index, kind_of,
+        self.session = SumoSession(Path(config.net.file), config.sim.step_length, self.road.edge_index, kind_of,
+                                   config.sim.sumo_args, config.sim.collision_mingap_factor,
                                    drive_avs=config.sim.av_driver == "env")
         self.detectors = detector_site(self.desc, self.road, config.sim.detector_offset)
         self.sumo_outputs: dict[int, SumoOutputs] = {}  # episode seed -> its parsed SUMO outputs

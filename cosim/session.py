@@ -33,9 +33,9 @@ def _libsumo():
 
 
 class SumoSession:
-    def __init__(self, net_file: Path, step_length: float, extra_args: Sequence[str] = (),
-                 mingap_factor: float = 0.0, edge_index: dict[str, int] | None = None,
-                 kind_of: Callable[[str], int] | None = None, drive_avs: bool = True) -> None:
+    def __init__(self, net_file: Path, step_length: float, edge_index: dict[str, int],
+                 kind_of: Callable[[str], int], extra_args: Sequence[str] = (), mingap_factor: float = 0.0,
+                 drive_avs: bool = True) -> None:
         other = _LIVE.get(os.getpid())
         if other is not None:
             raise SimulationError(
@@ -46,8 +46,8 @@ class SumoSession:
         _LIVE[os.getpid()] = self
         self.net_file = Path(net_file)
         self.step_length = step_length
-        self._edge_index = edge_index or {}
-        self._kind_of = kind_of or (lambda vid: KIND_AV)
+        self._edge_index = edge_index  # edge id -> the snapshot's edge index
+        self._kind_of = kind_of  # vehicle id -> KIND_*
         self.drive_avs = drive_avs  # False: SUMO's own models drive the AVs (the all-human baseline)
         self.args = [
             "-n", str(self.net_file),
@@ -67,7 +67,6 @@ class SumoSession:
         self._commanded: dict[str, float] = {}
         self._crashed: set[str] = set()  # every vehicle in a collision this episode
         self._crashed_period: set[str] = set()  # ... of which newly in the last `advance`
-        self._arrived: set[str] = set()
 
     # -- lifecycle ----------------------------------------------------------------------------------
     def load(self, route_file: Path, seed: int, extra_args: Sequence[str] = ()) -> None:
@@ -81,15 +80,12 @@ class SumoSession:
             else:
                 ls.start(["sumo", *args])
                 self._started = True
-        except ls.TraCIException as exc:
-            raise SimulationError(f"SUMO failed to start with net {self.net_file}: {exc}") from None
-        except ls.FatalTraCIError as exc:
+        except (ls.TraCIException, ls.FatalTraCIError) as exc:
             raise SimulationError(f"SUMO failed to start with net {self.net_file}: {exc}") from None
         self._static.clear()
         self._commanded.clear()
         self._crashed.clear()
         self._crashed_period.clear()
-        self._arrived.clear()
         self._sim_step()  # inserts the t = 0 vehicles
 
     def end_simulation(self) -> None:
@@ -105,10 +101,6 @@ class SumoSession:
         self.end_simulation()
         if _LIVE.get(os.getpid()) is self:
             del _LIVE[os.getpid()]
-
-    @property
-    def time(self) -> float:
-        return _libsumo().simulation.getTime()
 
     # -- stepping -----------------------------------------------------------------------------------
     def _sim_step(self) -> None:
@@ -127,7 +119,6 @@ class SumoSession:
             self._commanded.pop(vid, None)
         self._crashed.update(new)
         for vid in ls.simulation.getArrivedIDList():
-            self._arrived.add(vid)
             self._commanded.pop(vid, None)
         for vid in ls.simulation.getDepartedIDList():
             self._on_insert(vid)
@@ -135,8 +126,9 @@ class SumoSession:
     def _on_insert(self, vid: str) -> None:
         ls = _libsumo()
         vtype = ls.vehicle.getTypeID(vid)
-        self._static[vid] = (self._kind_of(vid), ls.vehicletype.getLength(vtype), ls.vehicletype.getWidth(vtype))
-        if self.drive_avs and self._kind_of(vid) == KIND_AV:
+        kind = self._kind_of(vid)
+        self._static[vid] = (kind, ls.vehicletype.getLength(vtype), ls.vehicletype.getWidth(vtype))
+        if self.drive_avs and kind == KIND_AV:
             # The env drives AVs: no SUMO lane changing, no safety checks, so AVs can crash.
             ls.vehicle.setLaneChangeMode(vid, 0)
             ls.vehicle.setSpeedMode(vid, 0)
@@ -149,7 +141,6 @@ class SumoSession:
         [-decel, +accel] * step and [0, max_speed], since SUMO ignores these limits at speed mode 0."""
         ls = _libsumo()
         before = set(self._crashed)
-        self._arrived.clear()
         dv_up, dv_down = accel * self.step_length, decel * self.step_length
         # SUMO keeps the last setSpeed: only AVs still on their way to the target need a command.
         ramping = {v: t for v, t in target_speed.items() if self._commanded.get(v, t) != t}
