@@ -48,6 +48,7 @@ from agents.rollout import EnvFactory, WorkerPool
 from cosim.cli import add_config_arguments
 from cosim.config import Config, load_config
 from cosim.errors import ConfigError
+from cosim.files import atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -161,8 +162,8 @@ def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: i
     if payload is not None:
         counters.update({k: int(v) for k, v in payload["counters"].items() if k in counters})
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "config.yaml").write_text(yaml.safe_dump({**cfg.to_dict(), "train": dataclasses.asdict(tc)},
-                                                        sort_keys=False))
+    atomic_write_text(out_dir / "config.yaml", yaml.safe_dump({**cfg.to_dict(), "train": dataclasses.asdict(tc)},
+                                                              sort_keys=False))
     _seed_everything(tc.seed)
     pool = WorkerPool(env_factory or _default_env_factory(cfg), tc.workers, seed=tc.seed + counters["updates"],
                       max_restarts=tc.max_restarts)
