@@ -50,14 +50,14 @@ from cosim.control import Action
 from cosim.env import MergeEnv
 from cosim.errors import ConfigError, CosimError
 from cosim.files import AppendCsv, atomic_path, atomic_write_text
-from cosim.metrics import EpisodeTracker, format_table, summarize
+from cosim.metrics import format_table, summarize
 from cosim.policies import POLICIES
 
 log = logging.getLogger(__name__)
 
 EVAL_SEED = 10_000_000
 CHECKPOINT = "checkpoint"  # the policy name of a trained run
-BASELINES = ("sumo", "idle", "random", "scripted")
+BASELINES = ("sumo", "idle", "random", "scripted", "courteous")
 # Config overrides a policy needs: the all-human baseline hands the AVs to SUMO.
 POLICY_OVERRIDES: dict[str, dict[str, Any]] = {"sumo": {"sim.av_driver": "sumo"}}
 # Leading episodes.csv columns (the env's episode summary and SUMO's follow).
@@ -173,7 +173,7 @@ class Runner:
         act = self.policy(seed)
         obs, _ = env.reset(seed=seed)
         # The env's own tracker gives the row; a second one records the trajectories of the plotted episodes.
-        recorder = EpisodeTracker(env.zone, env.chainage, record=True) if seed in self.job.record else None
+        recorder = env.new_tracker(record=True) if seed in self.job.record else None
         if recorder is not None:
             recorder.observe(env.snapshot)
         returns = dict.fromkeys(env.possible_agents, 0.0)
@@ -192,7 +192,7 @@ class Runner:
         sumo = env.sumo_outputs.pop(seed, None)
         if sumo is not None:
             row.update(sumo.as_row())
-            ours = env.tracker.distance
+            ours = env.window_distance
             row["distance_check"] = max((abs(ours[v] - sumo.distance[v]) for v in ours if v in sumo.distance),
                                         default=math.nan)
         if recorder is not None:
@@ -355,7 +355,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", type=Path, help="checkpoint file (default: RUN/checkpoint.pt)")
     parser.add_argument("--policy", choices=[CHECKPOINT, *BASELINES], default=None,
                         help="a baseline instead of a checkpoint: sumo (SUMO drives the AVs), idle, random, "
-                             "scripted (default: checkpoint)")
+                             "scripted (egoistic), courteous (lets the merging vehicle in) (default: checkpoint)")
     parser.add_argument("--episodes", type=int, help="evaluation episodes (default: evaluate.episodes, 100)")
     parser.add_argument("--net", type=Path, help="evaluate on another .net.xml (its description is found "
                                                  "beside it or inferred)")

@@ -29,7 +29,9 @@ OBSERVATION_PRESETS: dict[str, dict[str, Any]] = {
 CHANNELS = ("road", "avs", "hvs", "ego_merger")
 # Episode seeds from here on are evaluation's; training draws its seeds below, so the two never meet.
 EVAL_SEED_START = 10_000_000
-AV_DRIVERS = ("env", "sumo")  # who drives the AVs: the agents through the env, or SUMO's own models
+AV_DRIVERS = ("env", "sumo")
+PLACEMENTS = ("window", "stream")  # keys of cosim.scenario.PLACEMENTS
+ON_COLLISION = ("end", "remove")  # who drives the AVs: the agents through the env, or SUMO's own models
 # Named terms of a vehicle's individual utility and their default weights (see cosim.reward).
 REWARD_TERMS: dict[str, float] = {
     "speed": 1.0,  # progress this decision period / (max speed * period), in [0, 1]
@@ -41,8 +43,11 @@ REWARD_TERMS: dict[str, float] = {
 }
 
 
-# The bundled 3-lane merge (sumo_net/merge), the net of every config that names none.
-DEFAULT_NET = Path(__file__).resolve().parents[1] / "sumo_net" / "merge" / "merge.net.xml"
+# The bundled 2-lane merge with a long approach (sumo_net/dilemma), the net of every config that names none.
+DEFAULT_NET = Path(__file__).resolve().parents[1] / "sumo_net" / "dilemma" / "dilemma.net.xml"
+# HVs that never yield to the merging vehicle and keep their lane: no cooperative lane changes or speed
+# adjustments, no lane changes for speed or to keep right (LC2013 / SL2015 parameters).
+NON_YIELDING: dict[str, float] = {"lcCooperative": 0.0, "lcSpeedGain": 0.0, "lcKeepRight": 0.0}
 
 
 @dataclass(frozen=True)
@@ -59,7 +64,13 @@ class SimConfig:
     horizon: float = 20.0  # [s] episode time limit (truncation)
     seed: int = 0  # seed of the first episode; each reset without a seed takes the next one
     collision_mingap_factor: float = 0.0  # 0: only physical overlap is a collision
-    remove_crashed: bool = True  # take crashed vehicles off the road after the decision step
+    # What a collision that involves an AV or the merging vehicle does: "end" the episode at that SUMO step
+    # (the paper's rule; the wrecks stay where they are), or "remove" the colliders after the decision step
+    # and go on. Collisions among HVs alone never end an episode.
+    on_collision: str = "end"
+    # [s] a collision within this time after one of the two vehicles entered its lane is a lane-change
+    # collision, the fault of the vehicle that changed lanes (crash attribution, cosim.collisions).
+    cut_in_window: float = 2.0
     stuck_speed: float = 0.5  # [m/s] a merging vehicle slower than this near its lane end has failed
     stuck_distance: float = 10.0  # [m] ... and this close to the end of the acceleration lane
     sumo_args: tuple[str, ...] = ()  # extra SUMO command-line options
@@ -72,16 +83,33 @@ class SimConfig:
 
 @dataclass(frozen=True)
 class ScenarioConfig:
+    """Where the vehicles start (cosim.scenario). Ranges [low, high] are drawn uniformly per episode seed.
+
+    `placement: stream` (the merge dilemma): a dense stream of HVs and the AVs in the lane the merging vehicle
+    must enter, each HV at its IDM equilibrium gap behind its leader at the stream's speed, led by a vehicle
+    that drives at that speed; the stream reaches from `stream_head` back to `place_from`; one AV reaches the
+    merge edge `guide_window` after the merging vehicle. `n_hvs` more HVs go on the other through lanes by the
+    window rule. `placement: window` (free flow): `n_avs + n_hvs` vehicles spread over every through lane in
+    [place_from, place_to] with front-to-front gaps in [min_gap, max_gap] and speeds in `speed_range`.
+    """
+
+    placement: str = "stream"  # stream | window
     n_avs: int = 4  # autonomous vehicles (the agents)
-    n_hvs: int = 12  # human-driven vehicles on the highway at reset
+    n_hvs: int = 10  # HVs placed by the window rule (stream: on the lanes beside the stream)
     place_from: float = 0.0  # [m] along the highway from its first edge's start
-    place_to: float = 180.0  # [m] upstream placement window end
-    min_gap: float = 14.0  # [m] front-to-front spacing between placed vehicles in a lane, at least
-    max_gap: float = 30.0  # [m] ... and at most
-    speed_range: tuple[float, float] = (22.0, 28.0)  # [m/s] initial highway speeds
-    merger_pos: float = 5.0  # [m] start position along the ramp's first edge
+    place_to: float = 640.0  # [m] upstream placement window end
+    min_gap: float = 30.0  # [m] front-to-front spacing between window-placed vehicles in a lane, at least
+    max_gap: float = 60.0  # [m] ... and at most
+    speed_range: tuple[float, float] = (23.0, 28.0)  # [m/s] initial speeds of window-placed vehicles
+    merger_pos: tuple[float, float] = (0.0, 40.0)  # [m] start position along the ramp's first edge
     merger_speed: tuple[float, float] = (18.0, 22.0)  # [m/s]
     inflow: float = 0.0  # [veh/h] further HVs entering the highway start during the episode
+    stream_speed: tuple[float, float] = (23.0, 27.0)  # [m/s] the stream's speed
+    stream_head: tuple[float, float] = (0.0, 80.0)  # [m] its first vehicle, past the merge edge's start
+    stream_spacing: tuple[float, float] = (1.0, 1.2)  # [-] factor on each HV's equilibrium gap
+    av_speed_offset: tuple[float, float] = (-1.0, 3.0)  # [m/s] AVs' initial speed minus the stream's
+    # [s] one AV's arrival at the merge edge minus the merging vehicle's (both at their initial speeds)
+    guide_window: tuple[float, float] = (0.0, 3.0)
 
 
 @dataclass(frozen=True)
@@ -97,10 +125,13 @@ class DriverConfig:
     min_gap: float = 2.5  # [m]
     car_follow_model: str = "IDM"
     lane_change_model: str = "LC2013"  # or SL2015
-    speed_factor: str = "normc(1,0.1,0.8,1.2)"  # SUMO distribution of desired speed / limit
-    tau_range: tuple[float, float] = (1.0, 1.6)  # [s] per-vehicle headway, drawn uniformly
-    sigma_range: tuple[float, float] = (0.0, 0.3)  # [-] per-vehicle driver imperfection
-    lc_params: Mapping[str, float] = field(default_factory=dict)  # e.g. {lcCooperative: 0.2}
+    speed_factor: tuple[float, float] = (0.95, 1.1)  # [-] desired speed / speed limit, drawn per vehicle
+    # [s] per-vehicle desired time headway, drawn uniformly; IDM's T. 0.5-0.9 s: a dense stream (front-to-front
+    # about 1-1.5 s at its equilibrium gap), the low end of real motorway traffic.
+    tau_range: tuple[float, float] = (0.5, 0.9)
+    sigma_range: tuple[float, float] = (0.0, 0.3)  # [-] per-vehicle imperfection (Krauss models; IDM has none)
+    # LC2013 / SL2015 parameters, e.g. {lcCooperative: 0.2}; the default never yields to the merging vehicle.
+    lc_params: Mapping[str, float] = field(default_factory=lambda: dict(NON_YIELDING))
 
 
 @dataclass(frozen=True)
@@ -154,8 +185,8 @@ class Config:
     sim: SimConfig = field(default_factory=SimConfig)
     scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
     hv: DriverConfig = field(default_factory=DriverConfig)
-    merger: DriverConfig = field(default_factory=lambda: DriverConfig(max_speed=30.0, tau_range=(1.0, 1.0),
-                                                                      sigma_range=(0.0, 0.0)))
+    merger: DriverConfig = field(default_factory=lambda: DriverConfig(
+        max_speed=30.0, tau_range=(1.0, 1.0), sigma_range=(0.0, 0.0), speed_factor=(1.0, 1.0), lc_params={}))
     av: AVConfig = field(default_factory=AVConfig)
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
@@ -383,6 +414,11 @@ def validate(cfg: Config) -> None:
     positive("sim.decision_period", sim.decision_period)
     positive("sim.horizon", sim.horizon)
     positive("sim.detector_offset", sim.detector_offset, strict=False)
+    positive("sim.cut_in_window", sim.cut_in_window, strict=False)
+    if sim.on_collision not in ON_COLLISION:
+        raise ConfigError(f"sim.on_collision: expected one of {list(ON_COLLISION)}, got {sim.on_collision!r}")
+    if sc.placement not in PLACEMENTS:
+        raise ConfigError(f"scenario.placement: expected one of {list(PLACEMENTS)}, got {sc.placement!r}")
     if sim.av_driver not in AV_DRIVERS:
         raise ConfigError(f"sim.av_driver: expected one of {list(AV_DRIVERS)}, got {sim.av_driver!r}")
     if sim.decision_period < sim.step_length:
@@ -391,13 +427,20 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f"scenario.max_gap: must be >= scenario.min_gap ({sc.min_gap}), got {sc.max_gap}")
     if sc.place_to <= sc.place_from:
         raise ConfigError("scenario.place_to: must be greater than scenario.place_from")
-    for name in ("speed_range", "merger_speed"):
+    for name in ("speed_range", "merger_speed", "merger_pos", "stream_speed", "stream_spacing"):
         lo, hi = getattr(sc, name)
         if not 0 <= lo <= hi:
             raise ConfigError(f"scenario.{name}: expected [low, high] with 0 <= low <= high, got {[lo, hi]}")
+    for name in ("stream_head", "av_speed_offset", "guide_window"):
+        lo, hi = getattr(sc, name)
+        if not lo <= hi:
+            raise ConfigError(f"scenario.{name}: expected [low, high] with low <= high, got {[lo, hi]}")
+    if sc.stream_spacing[0] < 1.0:
+        raise ConfigError(f"scenario.stream_spacing: expected factors >= 1 (below the equilibrium gap the "
+                          f"stream brakes at once), got {list(sc.stream_spacing)}")
     for section in ("hv", "merger"):
         drv: DriverConfig = getattr(cfg, section)
-        for name in ("tau_range", "sigma_range"):
+        for name in ("tau_range", "sigma_range", "speed_factor"):
             lo, hi = getattr(drv, name)
             if not 0 <= lo <= hi:
                 raise ConfigError(f"{section}.{name}: expected [low, high] with 0 <= low <= high")

@@ -3,9 +3,13 @@
 Contract: agents `av_0 .. av_{N-1}` drive with the paper's 5 meta-actions (`cosim.control.Action`) and
 observe a stacked VelocityMap (frames, channels, height, width); rewards are the SVO rewards of
 `cosim.reward`, with every weighted term in `infos[agent]["reward_terms"]`. An agent terminates when its
-AV crashes or leaves the net. The episode is cut (every live agent truncated) at the horizon and when the
-merging vehicle crashes or gets stuck at the end of the acceleration lane: the AVs' own driving did not
-end there, so a learner bootstraps, and an egoistic AV gains nothing from keeping the episode alive.
+AV crashes or leaves the net. The episode is cut (every other live agent truncated) at the horizon, when
+the merging vehicle crashes or gets stuck at the end of the acceleration lane, and, with
+`sim.on_collision: end` (the paper's rule), at the SUMO step of the first collision that involves an AV or
+the merging vehicle: the other AVs' own driving did not end there, so a learner bootstraps, and an
+egoistic AV gains nothing from keeping the episode alive. With `on_collision: remove` the colliders are
+taken off the road after the decision step and the episode goes on. Every collision is attributed (kind,
+fault, cause: `cosim.collisions`) in the episode summary.
 On the last step every agent's info carries `"episode"`, the episode's summary: the row of the
 `cosim.metrics.EpisodeTracker` the env feeds every snapshot (`env.tracker`), with the seed and whether the
 merge failed. Observations are read-only views valid until the next step.
@@ -13,14 +17,16 @@ merge failed. Observations are read-only views valid until the next step.
 `step` is a template of small hooks: act -> simulate -> snapshot -> observe -> reward -> end.
 
 With `sim.outputs` each episode writes SUMO's tripinfo and induction-loop files into its own folder
-(`cosim.outputs.episode_folder`);
-SUMO completes them at the next reset or close (or `flush_outputs()`), when they are parsed into
-`env.sumo_outputs[seed]` (`cosim.outputs.SumoOutputs`). With `sim.av_driver: sumo` the agents' actions are
-ignored and SUMO's own models drive the AVs (the all-human baseline).
+(`cosim.outputs.episode_folder`), over a window that is the same for every episode: `flush_outputs()` runs
+an episode that ended early on to the horizon (wrecks stay where they crashed, the AVs drive as SUMO's
+humans), completes the files and parses them into `env.sumo_outputs[seed]` (`cosim.outputs.SumoOutputs`);
+a reset or close without it completes them at the time the episode ended. With `sim.av_driver: sumo` the
+agents' actions are ignored and SUMO's own models drive the AVs (the all-human baseline).
 """
 
 from __future__ import annotations
 
+import copy
 import logging
 import shutil
 import tempfile
@@ -43,7 +49,7 @@ from cosim.reward import svo_rewards, utility_terms, weighted_utility
 from cosim.roadnet import load_roadnet
 from cosim.scenario import av_id, kind_of, plan_episode, write_episode
 from cosim.session import SumoSession
-from cosim.snapshot import Snapshot
+from cosim.snapshot import KIND_AV, KIND_MERGER, Snapshot
 from cosim.velocity_map import VelocityMapper, rasterize_road
 
 log = logging.getLogger(__name__)
@@ -63,7 +69,7 @@ class MergeEnv(ParallelEnv):
             self.road, None if config.net.description is None else Path(config.net.description))
         self.zone = MergeZone.from_net(self.desc, self.road)
         self.chainage = Chainage.from_net(self.desc, self.road)
-        self.tracker = EpisodeTracker(self.zone, self.chainage)  # this episode's metrics, renewed at reset
+        self.tracker = self.new_tracker()  # this episode's metrics, renewed at reset
         self.possible_agents = [av_id(i) for i in range(config.scenario.n_avs)]
         self.agents: list[str] = []
         self.road_raster = rasterize_road(self.road.lane_shapes())
@@ -76,13 +82,21 @@ class MergeEnv(ParallelEnv):
         self._next_seed = config.sim.seed
         self._tmp = Path(tempfile.mkdtemp(prefix="cosim_"))
         self.route_file = self._tmp / "episode.rou.xml"  # this episode's vehicles, rewritten at reset
-        self.session = SumoSession(Path(config.net.file), config.sim.step_length, self.road.edge_index, kind_of,
+        self.session = SumoSession(Path(config.net.file), config.sim.step_length, self.road.index_of, kind_of,
                                    config.sim.sumo_args, config.sim.collision_mingap_factor,
                                    drive_avs=config.sim.av_driver == "env")
         self.detectors = detector_site(self.desc, self.road, config.sim.detector_offset)
         self.sumo_outputs: dict[int, SumoOutputs] = {}  # episode seed -> its parsed SUMO outputs
+        # [m] odometer of every vehicle at the end of the flow window (flush_outputs), to check SUMO's against
+        self.window_distance: dict[str, float] = {}
         self._pending_outputs: tuple[int, Path] | None = None  # written, not yet complete
         self._snap: Snapshot | None = None
+        self._window_end = 0.0  # [s] simulation time of the horizon in the running episode
+        # Collisions of these classes end the episode (the paper's rule).
+        self._stop_on = frozenset({KIND_AV, KIND_MERGER}) if config.sim.on_collision == "end" else frozenset()
+
+    def new_tracker(self, record: bool = False) -> EpisodeTracker:
+        return EpisodeTracker(self.zone, self.chainage, record=record, cut_in_window=self.cfg.sim.cut_in_window)
 
     # -- PettingZoo API -----------------------------------------------------------------------------
     # One space object for all agents, as PettingZoo asks (no functools.cache: it would keep the env alive).
@@ -113,8 +127,9 @@ class MergeEnv(ParallelEnv):
         snap = self.session.snapshot()
         rows = snap.rows_of(self.possible_agents)
         self._target = np.where(rows >= 0, snap.speed[np.maximum(rows, 0)], 0.0)
-        self.tracker = EpisodeTracker(self.zone, self.chainage)
+        self.tracker = self.new_tracker()
         self.tracker.observe(snap)
+        self._window_end = snap.time + self.max_steps * self.cfg.steps_per_decision * self.cfg.sim.step_length
         self.mapper.reset()
         self.mapper.update(snap, rows)
         self._snap = snap
@@ -142,7 +157,8 @@ class MergeEnv(ParallelEnv):
         rewards, terms, ego_u, social_u = self._rewards(prev, snap, rows, lane_changed, invalid, status.row,
                                                         merged and not merged_before)
         # A merging vehicle gone without merging can only have been taken off the road: over too.
-        cut = (status.crashed or status.stuck or (status.row < 0 and not merged)
+        collided = any(c.collider_kind in self._stop_on or c.victim_kind in self._stop_on for c in snap.collisions)
+        cut = (collided or status.crashed or status.stuck or (status.row < 0 and not merged)
                or self.tracker.steps >= self.max_steps)
         obs, rew, term, trunc, infos = {}, {}, {}, {}, {}
         for a in acting:
@@ -157,7 +173,7 @@ class MergeEnv(ParallelEnv):
                         "ego_utility": float(ego_u[i]), "social_utility": float(social_u[i]),
                         "invalid_action": bool(invalid[i]), "merged": merged}
         self.agents = [a for a in acting if not (term[a] or trunc[a])]
-        if self.cfg.sim.remove_crashed and snap.crashed.any():
+        if self.cfg.sim.on_collision == "remove" and snap.crashed.any():
             self.session.remove([v for v, c in zip(snap.ids, snap.crashed, strict=True) if c])
         self._snap = snap
         if not self.agents:
@@ -200,7 +216,7 @@ class MergeEnv(ParallelEnv):
         targets = {a: float(self._target[i]) for a, i in zip(acting, idx, strict=True)}
         if not self.session.drive_avs:
             targets = {}
-        self.session.advance(self.cfg.steps_per_decision, targets, av.accel, av.decel, av.max_speed)
+        self.session.advance(self.cfg.steps_per_decision, targets, av.accel, av.decel, av.max_speed, self._stop_on)
 
     def _rewards(self, prev: Snapshot, snap: Snapshot, rows: np.ndarray, lane_changed: np.ndarray,
                  invalid: np.ndarray, merger_row: int, merged_now: bool
@@ -245,10 +261,17 @@ class MergeEnv(ParallelEnv):
         return render_scene(self.road_raster, self._snap, self.mapper, self.cfg.observation, live[0] if live else 0)
 
     def flush_outputs(self) -> None:
-        """Complete and parse the last episode's SUMO outputs now (SUMO is restarted at the next reset)."""
+        """Run the last episode on to its horizon if it ended early, then complete and parse its SUMO outputs
+        (SUMO is restarted at the next reset)."""
         if self._pending_outputs is not None and self._snap is not None:
+            window = self.tracker
+            if self._snap.time < self._window_end - 0.5 * self.cfg.sim.step_length:
+                self.session.run_out(self._window_end)
+                window = copy.deepcopy(self.tracker)  # the episode's own metrics stop where it ended
+                window.observe(self.session.snapshot())
+            self.window_distance = window.distance
             self.session.end_simulation()
-            self._collect_outputs(self._snap.time)
+            self._collect_outputs(self._window_end)
 
     def _collect_outputs(self, end_time: float | None) -> None:
         if self._pending_outputs is None or end_time is None:

@@ -22,21 +22,41 @@ class MergeZone:
     merge_edge: int  # edge index
     accel_lanes: frozenset[int]
     accel_end: float  # [m] length of the acceleration lane
-    # (E + 1, max lanes) bool: lane is a through lane of the highway; the last row (edge -1, junction
-    # internals) is all False, so indexing with the snapshot's edge column needs no special case.
+    # Both indexed by the snapshot's (edge, lane), one row per RoadNet.index_of entry and a last row for edge
+    # -1, so that indexing with the snapshot's columns needs no special case.
+    # (E + 1, max lanes) bool: lane is a through lane of the highway (never inside a junction: no lane
+    # changes there).
     through: np.ndarray
+    # (E + 1, max lanes) int: rank of a through lane among its edge's through lanes (0 = rightmost), the same
+    # lane of the highway from edge to edge; a junction-internal lane has the rank of the lane it leaves;
+    # -1 elsewhere (ramp, acceleration lane).
+    rank: np.ndarray
+    target_rank: int  # the rank the merging vehicle must enter (beside the acceleration lane)
 
     @classmethod
     def from_net(cls, desc: NetDescription, road: RoadNet) -> MergeZone:
-        through = np.zeros((len(road.edge_ids) + 1, max(road.num_lanes(e) for e in road.edge_ids)), dtype=bool)
+        index = road.index_of
+        shape = (len(index) + 1, road.max_lanes)
+        through, rank = np.zeros(shape, dtype=bool), np.full(shape, -1, dtype=np.int64)
         for e in desc.highway:
-            through[road.edge_index[e], list(desc.through_lanes(road, e))] = True
+            lanes = list(desc.through_lanes(road, e))
+            through[index[e], lanes] = True
+            rank[index[e], lanes] = np.arange(len(lanes))
+        for e, lanes in road.internal.items():
+            for i, lane in enumerate(lanes):
+                rank[index[e], i] = rank[index[lane.from_edge], lane.from_lane]
         return cls(
-            merge_edge=road.edge_index[desc.merge_edge],
+            merge_edge=index[desc.merge_edge],
             accel_lanes=frozenset(desc.accel_lanes),
             accel_end=min(road.lane(desc.merge_edge, i).length for i in desc.accel_lanes),
             through=through,
+            rank=rank,
+            target_rank=desc.target_rank(road),
         )
+
+    def lane_rank(self, snap: Snapshot) -> np.ndarray:
+        """(V,) each vehicle's through-lane rank, -1 off the through lanes."""
+        return self.rank[snap.edge, snap.lane]
 
     def on_through_lane(self, edge: np.ndarray, lane: np.ndarray) -> np.ndarray:
         """(V,) bool: on a highway edge, and not on its acceleration lane."""

@@ -34,29 +34,32 @@ from typing import Any
 
 import numpy as np
 
+from cosim.collisions import CAUSES, CLASS_NAMES, Attributed, LaneChangeClock, attribute
 from cosim.episode import MergeStatus, MergeZone, merge_status
 from cosim.netdesc import NetDescription
 from cosim.roadnet import RoadNet
-from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
-
-CLASS_NAMES: dict[int, str] = {KIND_AV: "av", KIND_HV: "hv", KIND_MERGER: "merger"}
+from cosim.snapshot import KIND_AV, KIND_MERGER, Snapshot
 
 # Summary label -> (episodes.csv column, scale). Booleans become percentages by the x100 scale.
 SUMMARY_METRICS: dict[str, tuple[str, float]] = {
     "crash [%]": ("crashed", 100.0),
+    "crash, AV at fault [%]": ("cause_av", 100.0),
+    "crash, HV into AV [%]": ("cause_hv_into_av", 100.0),
+    "crash, merging vehicle [%]": ("cause_merger", 100.0),
     "merge success [%]": ("merged", 100.0),
     "time to merge [s]": ("time_to_merge", 1.0),
     "mean distance [m]": ("mean_distance", 1.0),
     "AV distance [m]": ("av_distance", 1.0),
     "HV distance [m]": ("hv_distance", 1.0),
     "merger distance [m]": ("merger_distance", 1.0),
-    "mean speed [m/s]": ("mean_speed", 1.0),
+    # Over the flow window from SUMO's tripinfo: a crash that ends the episode early cannot raise it.
+    "mean speed [m/s]": ("window_speed", 1.0),
     "throughput [veh/h]": ("throughput_vph", 1.0),
     "travel time [s]": ("travel_time", 1.0),
     "time loss [s]": ("time_loss", 1.0),
 }
 # Labels of SUMMARY_METRICS whose column is 0/1 per episode: Wilson score intervals, not t-intervals.
-RATE_METRICS: frozenset[str] = frozenset({"crash [%]", "merge success [%]"})
+RATE_METRICS: frozenset[str] = frozenset(label for label, (_, scale) in SUMMARY_METRICS.items() if scale == 100.0)
 
 
 # -- statistics ----------------------------------------------------------------------------------------
@@ -190,24 +193,32 @@ def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95,
 # -- geometry ------------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Chainage:
-    """Longitudinal position [m] of each edge's start on one axis through the highway and the ramp."""
+    """Longitudinal position [m] of each edge's start on one axis through the highway and the ramp, junctions
+    included (a junction-internal lane starts where the lane it leaves ends), as SUMO's odometer counts."""
 
-    offsets: np.ndarray  # (E,) by edge index (RoadNet.edge_ids order); NaN for edges not on the axis
+    offsets: np.ndarray  # (E,) by RoadNet.index_of; NaN for edges not on the axis
     merge_start: float  # [m] chainage of the merge edge's start (where the acceleration lane begins)
     merge_end: float  # [m] ... and end
-    highway_end: float  # [m] end of the last highway edge
+    highway_end: float  # [m] end of the last highway edge: where every route ends
 
     @classmethod
     def from_net(cls, desc: NetDescription, road: RoadNet) -> Chainage:
-        offsets = np.full(len(road.edge_ids), np.nan)
+        index = road.index_of
+        offsets = np.full(len(index), np.nan)
         hw = desc.highway_offsets(road)
         for edge, s in hw.items():
-            offsets[road.edge_index[edge]] = s
+            offsets[index[edge]] = s
         merge_start = hw[desc.merge_edge]
-        s = merge_start
-        for edge in reversed(desc.ramp):
+        s = merge_start - road.junction_length(desc.ramp[-1], desc.merge_edge)
+        for i in reversed(range(len(desc.ramp))):
+            edge = desc.ramp[i]
             s -= road.edge_length(edge)
-            offsets[road.edge_index[edge]] = s
+            offsets[index[edge]] = s
+            if i:
+                s -= road.junction_length(desc.ramp[i - 1], edge)
+        for edge, lanes in road.internal.items():
+            before = lanes[0].from_edge
+            offsets[index[edge]] = offsets[index[before]] + road.edge_length(before)
         return cls(offsets, merge_start, merge_start + road.edge_length(desc.merge_edge),
                    desc.highway_length(road))
 
@@ -254,11 +265,15 @@ TRAJECTORY_COLUMNS = ("step", "vehicle", "kind", "s", "x", "y", "heading", "spee
 class EpisodeTracker:
     """Feed it each snapshot of one episode (reset first); read the episode's row at the end."""
 
-    def __init__(self, zone: MergeZone, chainage: Chainage, record: bool = False) -> None:
+    def __init__(self, zone: MergeZone, chainage: Chainage, record: bool = False, cut_in_window: float = 2.0) -> None:
         self.zone = zone
         self.chainage = chainage
         self.record = record
+        self.cut_in_window = cut_in_window  # [s] see cosim.collisions.attribute
+        self.clock = LaneChangeClock()
+        self.collisions: list[Attributed] = []
         self.distance: dict[str, float] = {}  # [m] last odometer reading per vehicle
+        self.position: dict[str, float] = {}  # [m] last chainage per vehicle
         self.speed_sum: dict[str, float] = {}
         self.speed_n: dict[str, int] = {}
         self.kind: dict[str, int] = {}
@@ -283,8 +298,16 @@ class EpisodeTracker:
         for agent, a in (actions or {}).items():
             self.actions.setdefault(agent, []).append(int(a))
         ids = snap.ids
+        chain = self.chainage.of(snap)
+        # A vehicle that left the net since the last snapshot drove on to the end of its route (the axis' end).
+        for vid in snap.arrived:
+            if vid in self.position and vid not in self.crashed and np.isfinite(self.position[vid]):
+                self.distance[vid] += self.chainage.highway_end - self.position[vid]
         self.distance.update(zip(ids, snap.distance.tolist(), strict=True))
+        self.position.update(zip(ids, chain.tolist(), strict=True))
         self.kind.update(zip(ids, snap.kind.tolist(), strict=True))
+        self.clock.observe(snap, self.zone.lane_rank(snap))
+        self.collisions.extend(attribute(c, self.clock, self.cut_in_window) for c in snap.collisions)
         speed_sum, speed_n = self.speed_sum, self.speed_n
         for vid, v in zip(ids, snap.speed.tolist(), strict=True):
             speed_sum[vid] = speed_sum.get(vid, 0.0) + v
@@ -300,16 +323,16 @@ class EpisodeTracker:
                 # The guide is fixed at the merge; until then it follows the merging vehicle's nearest AV.
                 self.guide = guide_av(snap) or self.guide
         if self.record:
-            self._record(snap)
+            self._record(snap, chain)
 
-    def _record(self, snap: Snapshot) -> None:
+    def _record(self, snap: Snapshot, chain: np.ndarray) -> None:
         n = len(snap)
         self.times.append(float(snap.time))
         idx = np.array([self._vid_index.setdefault(v, len(self._vid_index)) for v in snap.ids], dtype=np.int32)
         cols = self._columns
         cols["step"].append(np.full(n, len(self.times) - 1, dtype=np.int32))
         cols["vehicle"].append(idx)
-        cols["s"].append(self.chainage.of(snap))
+        cols["s"].append(chain)
         for name in ("kind", "x", "y", "heading", "speed", "edge", "lane", "length", "width", "crashed"):
             cols[name].append(getattr(snap, name))
 
@@ -321,12 +344,20 @@ class EpisodeTracker:
         """The episode's metrics, one flat dict (a row of episodes.csv)."""
         mean_speed = {v: self.speed_sum[v] / self.speed_n[v] for v in self.speed_sum}
         crashed_kinds = {self.kind[v] for v in self.crashed}
+        causes = {c.cause for c in self.collisions}
+        first = self.collisions[0] if self.collisions else None
         row: dict[str, Any] = {
             "length": self.steps,  # decision steps (the env's name)
             "time": self.time,
             "crashed": bool(self.crashed),
             **{f"crash_{name}": k in crashed_kinds for k, name in CLASS_NAMES.items()},
+            # By cause (cosim.collisions): whether a collision of that cause happened in the episode.
+            **{f"cause_{cause}": cause in causes for cause in CAUSES},
+            "crash_kind": first.kind if first else "",  # of the first collision
             "n_crashed": len(self.crashed),
+            # Every collision: "time collider>victim kind fault=ID cause", ";"-separated.
+            "collisions": ";".join(f"{c.time:.1f} {c.collider}>{c.victim} {c.kind} fault={c.at_fault} {c.cause}"
+                                   for c in self.collisions),
             "merged": self.merged_at is not None,
             "time_to_merge": math.nan if self.merged_at is None else self.merged_at,
             "n_vehicles": len(self.distance),

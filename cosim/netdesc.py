@@ -44,13 +44,15 @@ class NetDescription:
     source: str  # the description file's path, or "inferred"
 
     def highway_offsets(self, roadnet: RoadNet) -> dict[str, float]:
-        """Chainage [m] of each highway edge's start: the sum of the lengths before it (junctions ignored)."""
-        lengths = [roadnet.edge_length(e) for e in self.highway]
-        return dict(zip(self.highway, [0.0, *accumulate(lengths)][:-1], strict=True))
+        """Chainage [m] of each highway edge's start: the lengths of the edges before it and of the ways
+        through the junctions between them (as SUMO's odometer counts them)."""
+        steps = [roadnet.edge_length(a) + roadnet.junction_length(a, b)
+                 for a, b in zip(self.highway, self.highway[1:], strict=False)]
+        return dict(zip(self.highway, [0.0, *accumulate(steps)], strict=True))
 
     def highway_length(self, roadnet: RoadNet) -> float:
-        """[m] sum of the highway edges' lengths."""
-        return float(sum(roadnet.edge_length(e) for e in self.highway))
+        """[m] chainage of the end of the last highway edge."""
+        return self.highway_offsets(roadnet)[self.highway[-1]] + roadnet.edge_length(self.highway[-1])
 
     def highway_position(self, roadnet: RoadNet, s: float) -> tuple[str, float]:
         """The highway edge and position on it [m] at chainage `s` [m]; ValueError outside the highway."""
@@ -61,12 +63,19 @@ class NetDescription:
         starts = list(offsets.values())
         i = bisect.bisect_right(starts, s) - 1
         edge = self.highway[i]
-        return edge, min(s - starts[i], roadnet.edge_length(edge))
+        return edge, min(s - starts[i], roadnet.edge_length(edge))  # in a junction: the end of the edge before
 
     def through_lanes(self, roadnet: RoadNet, edge: str) -> tuple[int, ...]:
         """Lane indices of `edge` that carry through traffic (all lanes but the acceleration lanes)."""
         skip = set(self.accel_lanes) if edge == self.merge_edge else set()
         return tuple(i for i in range(roadnet.num_lanes(edge)) if i not in skip)
+
+    def target_rank(self, roadnet: RoadNet) -> int:
+        """Rank among the merge edge's through lanes (0 = rightmost) of the lane the merging vehicle must enter:
+        the through lane beside the acceleration lanes."""
+        through = self.through_lanes(roadnet, self.merge_edge)
+        beside = max(self.accel_lanes) + 1
+        return through.index(beside if beside in through else min(self.accel_lanes) - 1)
 
 
 def load_net_description(roadnet: RoadNet, description_file: str | Path | None = None) -> NetDescription:

@@ -8,14 +8,15 @@ Contract:
   again): SUMO opens the new files at the reload, before the previous episode's are parsed, and must not
   truncate them.
 - `episode_output_args(folder, site)` writes `folder/detectors.add.xml` and returns the SUMO options that
-  make one episode write `folder/tripinfo.xml` (unfinished vehicles included, so a time-limited episode
-  reports every vehicle) and `folder/detectors.xml`. SUMO completes these files only when the simulation
-  is reloaded or closed; parse them after that.
-- `read_episode_outputs(folder, duration)` parses both files into `SumoOutputs`: throughput past the
-  detector [veh/h] = vehicles entering any loop / episode duration, mean travel time and time loss over
-  all trips [s/veh] (an unfinished trip counts up to the episode's end), and each vehicle's driven
-  distance (tripinfo routeLength, which equals SUMO's odometer) for cross-checks. Missing or truncated
-  files raise `SimulationError` naming the file.
+  make one episode write `folder/tripinfo.xml` (unfinished and undeparted vehicles included, so a
+  time-limited episode reports every vehicle) and `folder/detectors.xml`. SUMO completes these files only
+  when the simulation is reloaded or closed; parse them after that.
+- `read_episode_outputs(folder, duration)` parses both files into `SumoOutputs` over the window [0,
+  duration] [s] (the env runs every episode to the same window): throughput past the detector [veh/h] =
+  vehicles entering any loop / duration, mean travel time, time loss and speed over all trips (an
+  unfinished trip counts up to the window's end, waiting to enter counts as lost, a removed wreck stands
+  until the end: `read_tripinfo`), and each vehicle's driven distance (tripinfo routeLength, which equals
+  SUMO's odometer) for cross-checks. Missing or truncated files raise `SimulationError` naming the file.
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
+
+import numpy as np
 
 from cosim.errors import SimulationError
 from cosim.netdesc import NetDescription
@@ -66,7 +69,8 @@ def episode_output_args(folder: Path, site: DetectorSite, period: float = 1e6) -
     additional.write_text(f"<additional>\n{loops}</additional>\n")
     return ["--additional-files", str(additional),
             "--tripinfo-output", str(folder / TRIPINFO_FILE),
-            "--tripinfo-output.write-unfinished", "true"]
+            "--tripinfo-output.write-unfinished", "true",
+            "--tripinfo-output.write-undeparted", "true"]
 
 
 @dataclass(frozen=True)
@@ -75,12 +79,14 @@ class SumoOutputs:
     throughput_vph: float  # [veh/h] detector_count over the episode's duration
     travel_time: float  # [s] mean trip duration (unfinished trips up to the episode's end)
     time_loss: float  # [s] mean time lost against driving at the desired speed
+    mean_speed: float  # [m/s] mean over trips of distance driven / time in the window
     n_trips: int
     distance: dict[str, float] = field(default_factory=dict)  # [m] routeLength by vehicle id
 
     def as_row(self) -> dict[str, float | int]:
         return {"throughput_vph": self.throughput_vph, "detector_count": self.detector_count,
-                "travel_time": self.travel_time, "time_loss": self.time_loss, "n_trips": self.n_trips}
+                "travel_time": self.travel_time, "time_loss": self.time_loss, "window_speed": self.mean_speed,
+                "n_trips": self.n_trips}
 
 
 def _parse(path: Path) -> ET.Element:
@@ -99,19 +105,27 @@ def read_detectors(path: Path) -> int:
     return sum(int(float(iv.get("nVehEntered", "0"))) for iv in _parse(path).iter("interval"))
 
 
-def read_tripinfo(path: Path) -> list[dict[str, float | str]]:
+def read_tripinfo(path: Path, end: float) -> list[dict[str, float | str]]:
+    """Trips of every vehicle, undeparted and unfinished ones included. Travel time and time loss include the
+    time a vehicle waited to enter the road (SUMO's departDelay: a backlog at the entry is lost time too). A
+    vehicle taken off the road (SUMO's `vaporized`, e.g. a removed wreck) counts as standing until `end` [s]:
+    its trip would otherwise end early and improve the mean travel time and time loss by the crash."""
     trips = []
     for t in _parse(path).iter("tripinfo"):
-        trips.append({"id": t.get("id", ""), "duration": float(t.get("duration", "nan")),
-                      "time_loss": float(t.get("timeLoss", "nan")),
+        delay = float(t.get("departDelay", "0"))
+        duration, loss = float(t.get("duration", "nan")) + delay, float(t.get("timeLoss", "nan")) + delay
+        arrival = float(t.get("arrival", "-1"))
+        if t.get("vaporized") and 0 <= arrival < end:
+            duration, loss = duration + end - arrival, loss + end - arrival
+        trips.append({"id": t.get("id", ""), "duration": duration, "time_loss": loss,
                       "route_length": float(t.get("routeLength", "nan"))})
     return trips
 
 
 def read_episode_outputs(folder: Path, duration: float) -> SumoOutputs:
-    """Parse one episode's complete output files; `duration` [s] is the episode's simulated time."""
+    """Parse one episode's complete output files; `duration` [s] is the simulated time they cover."""
     count = read_detectors(folder / DETECTOR_FILE)
-    trips = read_tripinfo(folder / TRIPINFO_FILE)
+    trips = read_tripinfo(folder / TRIPINFO_FILE, duration)
 
     def mean(key: str) -> float:
         values = [float(t[key]) for t in trips]
@@ -122,6 +136,8 @@ def read_episode_outputs(folder: Path, duration: float) -> SumoOutputs:
         throughput_vph=count * 3600.0 / duration if duration > 0 else math.nan,
         travel_time=mean("duration"),
         time_loss=mean("time_loss"),
+        mean_speed=float(np.mean([t["route_length"] / t["duration"] for t in trips if t["duration"] > 0]))
+        if any(t["duration"] > 0 for t in trips) else math.nan,
         n_trips=len(trips),
         distance={str(t["id"]): float(t["route_length"]) for t in trips},
     )

@@ -1,8 +1,15 @@
 """Hand-written AV policies for scenario runs and baselines: a dict from name to builder.
 
-Contract: a policy is called as `policy(env) -> {agent: action}` for the env's live agents. `scripted`
-reads the env's public snapshot (it is a baseline, not a learner): cruise at `cruise_speed`, brake when
-the gap to the leader in the AV's lane is under two seconds, never change lane.
+Contract: a policy is called as `policy(env) -> {agent: action}` for the env's live agents; the rule-based
+ones read the env's public snapshot and net geometry (they are baselines, not learners):
+- `idle` keeps every AV's lane and target speed; `random` draws actions uniformly.
+- `scripted`, the egoistic reference: cruise at `cruise_speed`, keep a `headway` [s] to the leader in the
+  AV's lane (plus the distance needed to match a slower leader's speed at `brake` [m/s^2]), never change lane.
+- `courteous`: scripted, except for the AV best placed to let the merging vehicle in, the nearest AV behind
+  it in the lane it must enter (up to `reach` m behind) while it has not merged: that AV moves one lane
+  left where the left lane has room, else slows down below the merging vehicle's speed so that a gap opens
+  in front of it.
+Positions are chainages along the highway (`cosim.metrics.Chainage`), so leaders on the next edge count.
 """
 
 from __future__ import annotations
@@ -13,6 +20,7 @@ import numpy as np
 
 from cosim.control import Action
 from cosim.env import MergeEnv
+from cosim.snapshot import KIND_MERGER, Snapshot
 
 Policy = Callable[[MergeEnv], dict[str, int]]
 
@@ -26,23 +34,90 @@ def random_policy(seed: int = 0) -> Policy:
     return lambda env: {a: int(rng.integers(len(Action))) for a in env.agents}
 
 
-def scripted_policy(seed: int = 0, cruise_speed: float = 27.0, headway: float = 2.0) -> Policy:
+class _Road:
+    """Chainage [m], lane rank and the leader gap of every vehicle of one snapshot."""
+
+    def __init__(self, env: MergeEnv, snap: Snapshot) -> None:
+        self.snap = snap
+        self.s = env.chainage.of(snap)  # (V,) front bumper, NaN off the axis
+        self.rank = env.zone.lane_rank(snap)  # (V,) -1 off the through lanes
+
+    def gap_ahead(self, r: int, rank: int, behind: float = 0.0) -> tuple[float, float]:
+        """(gap [m], speed [m/s]) of the nearest vehicle in lane `rank` whose front is ahead of vehicle r's
+        front minus `behind` [m] (inf, inf without one); gap is bumper to bumper."""
+        snap, s = self.snap, self.s
+        ahead = (self.rank == rank) & (s > s[r] - behind)
+        ahead[r] = False
+        if not ahead.any():
+            return np.inf, np.inf
+        k = np.flatnonzero(ahead)[np.argmin(s[ahead])]
+        return float(s[k] - snap.length[k] - s[r]), float(snap.speed[k])
+
+    def follower_gap(self, r: int, rank: int) -> tuple[float, float]:
+        """(gap [m], speed [m/s]) behind vehicle r to the nearest vehicle in lane `rank` whose front is behind
+        r's front (inf, 0 without one)."""
+        snap, s = self.snap, self.s
+        behind = (self.rank == rank) & (s <= s[r])
+        behind[r] = False
+        if not behind.any():
+            return np.inf, 0.0
+        k = np.flatnonzero(behind)[np.argmax(s[behind])]
+        return float(s[r] - snap.length[r] - s[k]), float(snap.speed[k])
+
+
+def _follow(v: float, gap: float, v_lead: float, cruise: float, headway: float, brake: float) -> int:
+    """Decelerate when the gap is shorter than a safe one, accelerate toward `cruise` when it is ample."""
+    need = 2.0 + v * headway + max(0.0, (v * v - v_lead * v_lead) / (2.0 * brake))
+    if gap < need:
+        return int(Action.DECELERATE)
+    if v < cruise - 0.5 and gap > need + 2.5 * (1.0 + headway):
+        return int(Action.ACCELERATE)
+    return int(Action.IDLE)
+
+
+def scripted_policy(seed: int = 0, cruise_speed: float = 27.0, headway: float = 1.0, brake: float = 2.0) -> Policy:
     def act(env: MergeEnv) -> dict[str, int]:
-        snap = env.snapshot
-        actions = {}
-        for agent in env.agents:
-            r = snap.row_of(agent)
-            if r < 0:
-                actions[agent] = int(Action.IDLE)
-                continue
-            same = (snap.edge == snap.edge[r]) & (snap.lane == snap.lane[r]) & (snap.lane_pos > snap.lane_pos[r])
-            gap = (snap.lane_pos[same] - snap.lane_pos[r]).min(initial=np.inf)
-            if gap < headway * snap.speed[r] + snap.length[r]:
-                actions[agent] = int(Action.DECELERATE)
-            elif snap.speed[r] < cruise_speed - 1.0:
-                actions[agent] = int(Action.ACCELERATE)
-            else:
-                actions[agent] = int(Action.IDLE)
+        road = _Road(env, env.snapshot)
+        return {a: _scripted(road, road.snap.row_of(a), cruise_speed, headway, brake) for a in env.agents}
+
+    return act
+
+
+def _scripted(road: _Road, r: int, cruise: float, headway: float, brake: float) -> int:
+    if r < 0 or road.rank[r] < 0:  # gone, or crossing a junction: hold on
+        return int(Action.IDLE)
+    gap, v_lead = road.gap_ahead(r, int(road.rank[r]))
+    return _follow(float(road.snap.speed[r]), gap, v_lead, cruise, headway, brake)
+
+
+def courteous_policy(seed: int = 0, cruise_speed: float = 27.0, headway: float = 1.0, brake: float = 2.0,
+                     reach: float = 120.0, min_speed: float = 8.0) -> Policy:
+    def act(env: MergeEnv) -> dict[str, int]:
+        road = _Road(env, env.snapshot)
+        snap = road.snap
+        actions = {a: _scripted(road, snap.row_of(a), cruise_speed, headway, brake) for a in env.agents}
+        m = np.flatnonzero(snap.kind == KIND_MERGER)
+        if m.size == 0 or road.rank[m[0]] >= 0 or not np.isfinite(road.s[m[0]]):
+            return actions  # merged or gone: everyone cruises
+        m = int(m[0])
+        target = env.zone.target_rank
+        rows = {a: snap.row_of(a) for a in env.agents}
+        behind = {a: road.s[m] - road.s[r] for a, r in rows.items()
+                  if r >= 0 and road.rank[r] == target and -5.0 <= road.s[m] - road.s[r] <= reach}
+        if not behind:
+            return actions
+        guide = min(behind, key=behind.__getitem__)
+        r = rows[guide]
+        v = float(snap.speed[r])
+        left = target + 1
+        if env.zone.rank.max() >= left:  # a lane to the left: go there if it has room
+            gap_f, v_f = road.gap_ahead(r, left, behind=snap.length[r])
+            gap_b, v_b = road.follower_gap(r, left)
+            if gap_f > 2.0 + v * headway and gap_b > 2.0 + v_b * headway + max(0.0, v_b - v) * 2.0:
+                actions[guide] = int(Action.LANE_LEFT)
+                return actions
+        if actions[guide] != int(Action.DECELERATE) and v > max(min_speed, float(snap.speed[m]) - 2.0):
+            actions[guide] = int(Action.DECELERATE)
         return actions
 
     return act
@@ -52,4 +127,5 @@ POLICIES: dict[str, Callable[..., Policy]] = {
     "idle": idle_policy,
     "random": random_policy,
     "scripted": scripted_policy,
+    "courteous": courteous_policy,
 }

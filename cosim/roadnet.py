@@ -3,14 +3,18 @@
 Contract: `load_roadnet(path)` parses a `.net.xml` once (junction-internal edges left out) and returns a
 `RoadNet` that never refers back to sumolib: edge ids, per-edge lane counts and lengths, per-lane shapes
 (`(K, 2)` float64 arrays in SUMO's world frame [m]), widths [m], lengths [m], speed limits [m/s] and lane
-connections to the next normal edge. A missing, malformed or non-SUMO file raises `NetError` naming the file.
-What the edges *mean* (highway, ramp, merge) is not here: see `cosim.netdesc`.
+connections to the next normal edge. Junction-internal lanes (ids starting with ':', the short lanes
+through a junction that SUMO's vehicles drive on between two edges) are kept apart in `internal`: each
+with the normal lane it leaves and its length, so that positions stay continuous through junctions; they
+are indexed after the normal edges (`index_of`). A missing, malformed or non-SUMO file raises `NetError`
+naming the file. What the edges *mean* (highway, ramp, merge) is not here: see `cosim.netdesc`.
 """
 
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -48,15 +52,46 @@ class EdgeInfo:
         return len(self.lanes)
 
 
+@dataclass(frozen=True)
+class InternalLane:
+    """A junction-internal lane: the way through a junction from one normal lane to the next."""
+
+    from_edge: str
+    from_lane: int
+    to_edge: str
+    length: float  # [m]
+
+
 @dataclass(frozen=True, eq=False)
 class RoadNet:
-    """All normal edges of a net; build it with `load_roadnet`."""
+    """All normal edges of a net, and its junction-internal lanes; build it with `load_roadnet`."""
 
     net_file: Path
     edge_ids: tuple[str, ...]  # sorted
     edge_index: dict[str, int]  # edge id -> position in edge_ids
     edges: dict[str, EdgeInfo]
-    bounds: tuple[float, float, float, float]  # (xmin, ymin, xmax, ymax) of all lane areas [m]
+    internal: dict[str, tuple[InternalLane, ...]]  # internal edge id (":...") -> its lanes by index
+
+    @cached_property
+    def internal_ids(self) -> tuple[str, ...]:
+        """Internal edge ids, sorted: index `len(edge_ids) + k` in `index_of`."""
+        return tuple(sorted(self.internal))
+
+    @cached_property
+    def index_of(self) -> dict[str, int]:
+        """Edge id -> index for every edge a vehicle can be on: normal edges first, then internal ones."""
+        n = len(self.edge_ids)
+        return {**self.edge_index, **{e: n + k for k, e in enumerate(self.internal_ids)}}
+
+    @cached_property
+    def max_lanes(self) -> int:
+        return max([e.num_lanes for e in self.edges.values()] + [len(v) for v in self.internal.values()])
+
+    def junction_length(self, from_edge: str, to_edge: str) -> float:
+        """[m] length of the way through the junction from `from_edge` to `to_edge` (0 without one)."""
+        lengths = [lane.length for lanes in self.internal.values() for lane in lanes
+                   if lane.from_edge == from_edge and lane.to_edge == to_edge]
+        return float(max(lengths, default=0.0))
 
     def edge(self, edge_id: str) -> EdgeInfo:
         try:
@@ -103,7 +138,7 @@ def load_roadnet(path: str | Path) -> RoadNet:
     if not net_file.is_file():
         raise NetError(f"net file {net_file}: not found")
     try:
-        net = sumolib.net.readNet(str(net_file), withInternal=False)
+        net = sumolib.net.readNet(str(net_file), withInternal=True)
     except Exception as exc:  # sumolib raises SAX parse errors, KeyErrors on missing attributes, ...
         raise NetError(f"net file {net_file}: not a readable SUMO network, expected a .net.xml written by "
                        f"netconvert ({type(exc).__name__}: {exc})") from None
@@ -118,13 +153,23 @@ def load_roadnet(path: str | Path) -> RoadNet:
         raise NetError(f"net file {net_file}: no edges found; expected a SUMO network (<net> with <edge> and "
                        f"<lane> elements, as written by netconvert)")
     edge_ids = tuple(sorted(edges))
-    return RoadNet(
-        net_file=net_file,
-        edge_ids=edge_ids,
-        edge_index={e: i for i, e in enumerate(edge_ids)},
-        edges=edges,
-        bounds=_bounds(edges.values()),
-    )
+    return RoadNet(net_file=net_file, edge_ids=edge_ids, edge_index={e: i for i, e in enumerate(edge_ids)},
+                   edges=edges, internal=_internal_lanes(net, edges))
+
+
+def _internal_lanes(net: object, edges: dict[str, EdgeInfo]) -> dict[str, tuple[InternalLane, ...]]:
+    """Internal lanes reached from normal lanes through their connections' via lanes."""
+    found: dict[str, dict[int, InternalLane]] = {}
+    for e in edges:
+        for lane in net.getEdge(e).getLanes():
+            for c in lane.getOutgoing():
+                via = c.getViaLaneID()
+                if not via:
+                    continue
+                edge_id, _, index = via.rpartition("_")
+                found.setdefault(edge_id, {})[int(index)] = InternalLane(
+                    e, lane.getIndex(), c.getTo().getID(), float(net.getLane(via).getLength()))
+    return {e: tuple(lanes[i] for i in sorted(lanes)) for e, lanes in found.items()}
 
 
 def _lane_info(lane: object) -> LaneInfo:
@@ -134,13 +179,3 @@ def _lane_info(lane: object) -> LaneInfo:
                        if not c.getTo().getID().startswith(":"))
     return LaneInfo(lane.getID(), lane.getIndex(), shape, float(lane.getWidth()), float(lane.getLength()),
                     float(lane.getSpeed()), successors)
-
-
-def _bounds(edges: object) -> tuple[float, float, float, float]:
-    # Lane centre lines widened by half a lane width: the area a raster of the road has to cover.
-    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
-    for e in edges:
-        for lane in e.lanes:
-            lo = np.minimum(lo, lane.shape.min(axis=0) - lane.width / 2)
-            hi = np.maximum(hi, lane.shape.max(axis=0) + lane.width / 2)
-    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])

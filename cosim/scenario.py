@@ -1,15 +1,28 @@
 """The vehicles of one episode: a seeded plan, and the SUMO route file that realises it.
 
-Contract: `plan_episode(cfg, desc, road, seed)` is a pure function of its inputs (same seed, same plan):
-N AVs and M HVs interleaved on the highway's through lanes upstream of the merge, with randomised gaps
-and speeds, and the merging vehicle on the ramp. `write_episode(plan, cfg, desc, path)` writes vTypes,
-routes and vehicles as one `.rou.xml` that SUMO loads at reset; every vehicle departs at t = 0 with SUMO's
-insertion checks off so that the plan is realised exactly. Per-HV headway and imperfection come as a
-vType of their own, so HVs differ as the config asks.
+Contract: `plan_episode(cfg, desc, road, seed)` is a pure function of its inputs (same seed, same plan); the
+config's `scenario.placement` picks the rule from `PLACEMENTS`:
+- `window` (free flow): N AVs and M HVs interleaved on the highway's through lanes upstream of the merge,
+  with randomised gaps and speeds.
+- `stream` (the merge dilemma): a dense stream in the lane the merging vehicle must enter (the through
+  lane beside the acceleration lane). Its first vehicle drives at the stream's speed; behind it every
+  vehicle sits at an IDM driver's equilibrium gap at that speed (times a spacing factor), so the stream
+  neither brakes nor thins out on its own, back to `place_from`, and a flow at the highway's start continues
+  it at its mean spacing. AVs take stream slots, one of them timed to reach the merge edge just after the
+  merging vehicle (the guide AV, who can open a gap), and start a little off the stream's speed. The head
+  moves downstream where a short highway has no room for the AVs. `n_hvs` more HVs go on the other through
+  lanes by the window rule.
+The merging vehicle starts on the ramp at a random position and speed; `scenario.inflow` adds a random flow
+of HVs. `write_episode(plan, cfg, desc, path)` writes vTypes, routes, vehicles and flows as one `.rou.xml`
+that SUMO loads at reset; every placed vehicle departs at t = 0 with SUMO's insertion checks off so that
+the plan is realised exactly. Each HV has a vType
+of its own (headway, imperfection, desired speed), so HVs differ as the config asks.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
@@ -37,15 +50,38 @@ def kind_of(vid: str) -> int:
 
 
 @dataclass(frozen=True)
+class Flow:
+    """HVs entering a route's first edge during the episode (a SUMO flow of one vType), from the first decision
+    step to the horizon: every `period` [s], or with `probability` per second."""
+
+    fid: str
+    route: str
+    lane: int | str  # lane index, or SUMO's "best"
+    speed: float | str  # [m/s] at entry, or SUMO's "desired"
+    period: float | None = None
+    probability: float | None = None
+    tau: float = 1.0  # [s]
+    speed_factor: float = 1.0
+
+
+@dataclass(frozen=True)
+class Plan:
+    vehicles: list[Spawn]  # sorted by route, then downstream first, so SUMO inserts leaders first
+    flows: list[Flow]
+
+
+@dataclass(frozen=True)
 class Spawn:
     vid: str
     kind: int
     route: str  # route id in the episode file
     lane: int
-    pos: float  # [m] on the route's first edge
+    pos: float  # [m] front bumper on the route's first edge
     speed: float  # [m/s]
     tau: float = 1.0  # [s] (HVs)
     sigma: float = 0.0  # [-] (HVs)
+    speed_factor: float = 1.0  # [-] desired speed / speed limit (HVs)
+    max_speed: float | None = None  # [m/s] caps the desired speed (a stream's first vehicle); None: the driver's
 
 
 def route_ids(desc: NetDescription) -> dict[str, tuple[str, ...]]:
@@ -56,102 +92,211 @@ def route_ids(desc: NetDescription) -> dict[str, tuple[str, ...]]:
     return routes
 
 
-def plan_episode(cfg: Config, desc: NetDescription, road: RoadNet, seed: int) -> list[Spawn]:
-    sc = cfg.scenario
-    length = desc.highway_length(road)
-    if sc.place_from < 0 or sc.place_to > length:
-        raise ConfigError(f"scenario.place_from / place_to: [{sc.place_from}, {sc.place_to}] m must lie on the "
-                          f"highway, [0, {length:.1f}] m long in {road.net_file}")
-    rng = np.random.default_rng(seed)
-    n_total = sc.n_avs + sc.n_hvs
-    hw_index = {edge: i for i, edge in enumerate(desc.highway)}
-    n_lanes = min(len(desc.through_lanes(road, e)) for e in desc.highway)
-    # Slots per lane: front-to-front spacing drawn from [min_gap, max_gap], so lanes are staggered.
-    slots: list[tuple[float, int]] = []
-    for lane in range(n_lanes):
-        s = sc.place_from + rng.uniform(0.0, sc.min_gap)
-        while s <= sc.place_to:
-            slots.append((s, lane))
-            s += rng.uniform(sc.min_gap, sc.max_gap)
-    if len(slots) < n_total:
-        raise ConfigError(
-            f"scenario: {n_total} vehicles (n_avs + n_hvs) do not fit in [place_from, place_to] = "
-            f"[{sc.place_from}, {sc.place_to}] m on {n_lanes} lanes with min_gap {sc.min_gap} m; "
-            f"about {len(slots)} fit: lower the counts or widen the window"
-        )
-    chosen = rng.choice(len(slots), size=n_total, replace=False)
-    # A random permutation of AV and HV labels over the chosen slots interleaves the classes.
-    is_av = np.zeros(n_total, dtype=bool)
-    is_av[rng.choice(n_total, size=sc.n_avs, replace=False)] = True
-    speeds = rng.uniform(*sc.speed_range, size=n_total)
-    plan: list[Spawn] = []
-    n_av = n_hv = 0
-    for k, slot in enumerate(chosen):
-        s, lane_rank = slots[slot]
-        edge, pos = desc.highway_position(road, s)
-        lane = desc.through_lanes(road, edge)[lane_rank]
-        route = f"hw_{hw_index[edge]}"
-        if is_av[k]:
-            plan.append(Spawn(av_id(n_av), KIND_AV, route, lane, pos, float(speeds[k])))
-            n_av += 1
+def idm_gap(speed: float, desired: float, tau: float, min_gap: float) -> float:
+    """[m] bumper-to-bumper gap at which an IDM driver (exponent 4) holds `speed` behind a leader at that
+    speed: (s0 + v T) / sqrt(1 - (v / v0)^4), kept finite for a desired speed at or below `speed`."""
+    return (min_gap + speed * tau) / math.sqrt(max(1.0 - (speed / desired) ** 4, 0.1))
+
+
+class _Planner:
+    """Shared state of one plan: the seeded RNG, the net's highway axis and the spawns made so far."""
+
+    def __init__(self, cfg: Config, desc: NetDescription, road: RoadNet, seed: int) -> None:
+        self.cfg, self.desc, self.road = cfg, desc, road
+        self.rng = np.random.default_rng(seed)
+        self.length = desc.highway_length(road)
+        self.hw_index = {edge: i for i, edge in enumerate(desc.highway)}
+        self.n_lanes = min(len(desc.through_lanes(road, e)) for e in desc.highway)
+        self.merge_start = desc.highway_offsets(road)[desc.merge_edge]
+        self.plan: list[Spawn] = []
+        self.flows: list[Flow] = []
+        self.n_av = self.n_hv = 0
+        sc = cfg.scenario
+        if sc.place_from < 0 or sc.place_to > self.length:
+            raise ConfigError(f"scenario.place_from / place_to: [{sc.place_from}, {sc.place_to}] m must lie on "
+                              f"the highway, [0, {self.length:.1f}] m long in {road.net_file}")
+
+    def uniform(self, bounds: tuple[float, float]) -> float:
+        return float(self.rng.uniform(*bounds))
+
+    def add(self, kind: int, s: float, rank: int, speed: float, **driver: float) -> None:
+        """A vehicle whose front bumper is at chainage `s` [m] in the `rank`-th through lane."""
+        edge, pos = self.desc.highway_position(self.road, s)
+        lane = self.desc.through_lanes(self.road, edge)[rank]
+        route = f"hw_{self.hw_index[edge]}"
+        if kind == KIND_AV:
+            vid, self.n_av = av_id(self.n_av), self.n_av + 1
+            self.plan.append(Spawn(vid, KIND_AV, route, lane, pos, speed))
         else:
-            tau, sigma = rng.uniform(*cfg.hv.tau_range), rng.uniform(*cfg.hv.sigma_range)
-            plan.append(Spawn(f"hv_{n_hv}", KIND_HV, route, lane, pos, float(speeds[k]), float(tau), float(sigma)))
-            n_hv += 1
-    ramp_len = road.edge_length(desc.ramp[0])
-    if not 0 <= sc.merger_pos < ramp_len:
-        raise ConfigError(f"scenario.merger_pos: must be within the ramp edge {desc.ramp[0]!r} "
-                          f"(0 to {ramp_len:.1f} m), got {sc.merger_pos}")
-    tau, sigma = rng.uniform(*cfg.merger.tau_range), rng.uniform(*cfg.merger.sigma_range)
-    plan.append(Spawn(MERGER_ID, KIND_MERGER, "ramp", 0, sc.merger_pos,
-                      float(rng.uniform(*sc.merger_speed)), float(tau), float(sigma)))
+            vid, self.n_hv = f"hv_{self.n_hv}", self.n_hv + 1
+            hv = self.cfg.hv
+            driver = {"tau": self.uniform(hv.tau_range), "sigma": self.uniform(hv.sigma_range),
+                      "speed_factor": self.uniform(hv.speed_factor), **driver}
+            # Never faster than the driver wants to go there: SUMO refuses such a departure.
+            top = min(driver["speed_factor"] * self.road.lane(edge, lane).speed,
+                      driver.get("max_speed") or hv.max_speed)
+            self.plan.append(Spawn(vid, KIND_HV, route, lane, pos, min(speed, top), **driver))
+
+    def window(self, ranks: list[int], n_avs: int, n_hvs: int) -> None:
+        """`n_avs + n_hvs` vehicles in slots spread over the lanes `ranks` of [place_from, place_to]."""
+        sc = self.cfg.scenario
+        rng = self.rng
+        n_total = n_avs + n_hvs
+        if n_total == 0:
+            return
+        # Slots per lane: front-to-front spacing drawn from [min_gap, max_gap], so lanes are staggered.
+        slots: list[tuple[float, int]] = []
+        for rank in ranks:
+            s = sc.place_from + rng.uniform(0.0, sc.min_gap)
+            while s <= sc.place_to:
+                slots.append((s, rank))
+                s += rng.uniform(sc.min_gap, sc.max_gap)
+        if len(slots) < n_total:
+            raise ConfigError(
+                f"scenario: {n_total} vehicles do not fit in [place_from, place_to] = [{sc.place_from}, "
+                f"{sc.place_to}] m on {len(ranks)} lane(s) with min_gap {sc.min_gap} m; about {len(slots)} fit: "
+                "lower the counts (n_avs, n_hvs) or widen the window")
+        chosen = rng.choice(len(slots), size=n_total, replace=False)
+        # A random permutation of AV and HV labels over the chosen slots interleaves the classes.
+        is_av = np.zeros(n_total, dtype=bool)
+        is_av[rng.choice(n_total, size=n_avs, replace=False)] = True
+        speeds = rng.uniform(*sc.speed_range, size=n_total)
+        for k, slot in enumerate(chosen):
+            s, rank = slots[slot]
+            self.add(KIND_AV if is_av[k] else KIND_HV, s, rank, float(speeds[k]))
+
+    def merger(self) -> float:
+        """Place the merging vehicle on the ramp; returns the time [s] it needs to the merge edge."""
+        sc, desc, road = self.cfg.scenario, self.desc, self.road
+        ramp_len = road.edge_length(desc.ramp[0])
+        if not 0 <= sc.merger_pos[0] <= sc.merger_pos[1] < ramp_len:
+            raise ConfigError(f"scenario.merger_pos: must be within the ramp edge {desc.ramp[0]!r} "
+                              f"(0 to {ramp_len:.1f} m), got {list(sc.merger_pos)}")
+        pos, speed = self.uniform(sc.merger_pos), self.uniform(sc.merger_speed)
+        m = self.cfg.merger
+        self.plan.append(Spawn(MERGER_ID, KIND_MERGER, "ramp", 0, pos, speed, self.uniform(m.tau_range),
+                               self.uniform(m.sigma_range), self.uniform(m.speed_factor)))
+        to_merge = sum(road.edge_length(e) for e in desc.ramp) - pos
+        return to_merge / max(speed, 0.1)
+
+
+def _place_window(p: _Planner) -> None:
+    sc = p.cfg.scenario
+    p.window(list(range(p.n_lanes)), sc.n_avs, sc.n_hvs)
+    p.merger()
+
+
+def _place_stream(p: _Planner) -> None:
+    sc, hv, desc, road = p.cfg.scenario, p.cfg.hv, p.desc, p.road
+    rank = desc.target_rank(road)
+    if rank >= p.n_lanes:
+        raise ConfigError(f"scenario.placement stream: the lane beside the acceleration lane is not a through lane "
+                          f"of every highway edge in {road.net_file}")
+    merger_time = p.merger()
+    speed = p.uniform(sc.stream_speed)
+    limit = road.lane(desc.merge_edge, desc.through_lanes(road, desc.merge_edge)[rank]).speed
+    # Followers of the stream's first vehicle, front to back: (tau, speed factor, front-to-front spacing [m]).
+    drivers, reach = [], 0.0
+    while reach < p.length - sc.place_from:
+        tau, factor = p.uniform(hv.tau_range), p.uniform(hv.speed_factor)
+        gap = idm_gap(speed, min(factor * limit, hv.max_speed), tau, hv.min_gap) * p.uniform(sc.stream_spacing)
+        drivers.append((tau, factor, gap + hv.length))
+        reach += gap + hv.length
+    spacing = np.cumsum([d[2] for d in drivers])  # (K,) [m] behind the first vehicle's front
+    # The head: past the merge edge's start by `stream_head`, further down where the AVs need the room.
+    head = p.merge_start + p.uniform(sc.stream_head)
+    head = min(max(head, sc.place_from + hv.length + spacing[min(sc.n_avs, len(spacing)) - 1] + 1.0), p.length - 1.0)
+    fronts = head - spacing
+    followers = int(np.count_nonzero(fronts - hv.length >= sc.place_from))
+    if sc.n_avs > followers:
+        raise ConfigError(f"scenario: {sc.n_avs} AVs do not fit in the stream on [{sc.place_from:.0f}, "
+                          f"{p.length:.0f}] m ({followers} places behind its first vehicle): lower scenario.n_avs "
+                          "or place_from, or use a net with a longer highway")
+    # The guide AV reaches the merge edge `guide_window` after the merging vehicle; the nearest slot if none.
+    arrival = (p.merge_start - fronts[:followers]) / speed - merger_time
+    lo, hi = sc.guide_window
+    inside = np.flatnonzero((arrival >= lo) & (arrival <= hi))
+    guide = int(p.rng.choice(inside)) if inside.size else int(np.argmin(np.abs(arrival - 0.5 * (lo + hi))))
+    rest = np.delete(np.arange(followers), guide)
+    avs = {guide, *p.rng.choice(rest, size=sc.n_avs - 1, replace=False).tolist()}
+    p.add(KIND_HV, head, rank, speed, max_speed=speed)  # drives at the stream's speed: the stream keeps it
+    for k in range(followers):
+        if k in avs:
+            p.add(KIND_AV, fronts[k], rank, max(speed + p.uniform(sc.av_speed_offset), 0.0))
+        else:
+            p.add(KIND_HV, fronts[k], rank, speed, tau=drivers[k][0], speed_factor=drivers[k][1])
+    # Behind the placed stream it goes on, entering at the highway's start at its mean spacing, unless the
+    # placed stream's tail passes the acceleration lane's end only after the horizon anyway.
+    tail = fronts[followers - 1]
+    accel_end = p.merge_start + road.edge_length(desc.merge_edge)
+    first = desc.highway[0]
+    if (accel_end - tail) / max(speed, 0.1) < p.cfg.sim.horizon:
+        p.flows.append(Flow("stream", "hw_0", desc.through_lanes(road, first)[rank], speed,
+                            period=float(np.mean([d[2] for d in drivers])) / max(speed, 0.1),
+                            tau=float(np.mean(hv.tau_range)), speed_factor=float(np.mean(hv.speed_factor))))
+    p.window([r for r in range(p.n_lanes) if r != rank], 0, sc.n_hvs)
+
+
+PLACEMENTS: dict[str, Callable[[_Planner], None]] = {"window": _place_window, "stream": _place_stream}
+
+
+def plan_episode(cfg: Config, desc: NetDescription, road: RoadNet, seed: int) -> Plan:
+    planner = _Planner(cfg, desc, road, seed)
+    PLACEMENTS[cfg.scenario.placement](planner)
+    sc, hv = cfg.scenario, cfg.hv
+    if sc.inflow > 0:
+        planner.flows.append(Flow("inflow", "hw_0", "best", "desired", probability=min(1.0, sc.inflow / 3600.0),
+                                  tau=float(np.mean(hv.tau_range)), speed_factor=float(np.mean(hv.speed_factor))))
     # Sorted by position so SUMO inserts leaders before followers on each lane.
-    plan.sort(key=lambda sp: (sp.route, -sp.pos))
-    return plan
+    return Plan(sorted(planner.plan, key=lambda sp: (sp.route, -sp.pos)), planner.flows)
 
 
-def _vtype(vid: str, drv: DriverConfig, tau: float, sigma: float) -> str:
+def _vtype(vid: str, drv: DriverConfig, tau: float, sigma: float, speed_factor: float,
+           max_speed: float | None = None) -> str:
     lc = "".join(f" {k}={quoteattr(str(v))}" for k, v in drv.lc_params.items())
+    # speedDev 0: the drawn factor is the driver's, SUMO must not draw another around it.
     return (
         f'  <vType id="{vid}" carFollowModel="{drv.car_follow_model}" laneChangeModel="{drv.lane_change_model}"'
         f' accel="{drv.accel}" decel="{drv.decel}" emergencyDecel="{drv.emergency_decel}"'
-        f' maxSpeed="{drv.max_speed}" length="{drv.length}" width="{drv.width}" minGap="{drv.min_gap}"'
-        f' speedFactor="{drv.speed_factor}" tau="{tau:.3f}" sigma="{sigma:.3f}"{lc}/>\n'
+        f' maxSpeed="{drv.max_speed if max_speed is None else max_speed:.3f}" length="{drv.length}"'
+        f' width="{drv.width}" minGap="{drv.min_gap}" speedFactor="{speed_factor:.4f}" speedDev="0"'
+        f' tau="{tau:.3f}" sigma="{sigma:.3f}"{lc}/>\n'
     )
 
 
-def write_episode(plan: list[Spawn], cfg: Config, desc: NetDescription, path: Path) -> None:
+def write_episode(plan: Plan, cfg: Config, desc: NetDescription, path: Path) -> None:
     av = cfg.av
     parts = ["<routes>\n"]
+    hv = cfg.hv
     if cfg.sim.av_driver == "sumo":  # the all-human baseline: AVs drive like (average) HVs
-        hv = cfg.hv
-        parts.append(_vtype("av", hv, float(np.mean(hv.tau_range)), float(np.mean(hv.sigma_range))))
+        parts.append(_vtype("av", hv, *(float(np.mean(r)) for r in (hv.tau_range, hv.sigma_range, hv.speed_factor))))
     else:
         # AVs are driven by the env (speed mode 0); their vType only gives size and nominal limits.
         parts.append(
             f'  <vType id="av" accel="{av.accel}" decel="{av.decel}" emergencyDecel="{av.decel}"'
-            f' maxSpeed="{av.max_speed}" length="{av.length}" width="{av.width}" speedFactor="1" sigma="0"'
-            f' color="0,200,0"/>\n'
+            f' maxSpeed="{av.max_speed}" length="{av.length}" width="{av.width}" speedFactor="1" speedDev="0"'
+            f' sigma="0" color="0,200,0"/>\n'
         )
     for name, edges in route_ids(desc).items():
         parts.append(f'  <route id="{name}" edges="{" ".join(edges)}"/>\n')
-    for sp in plan:
+    for sp in plan.vehicles:
         if sp.kind == KIND_AV:
             vtype = "av"
         else:
             vtype = f"t_{sp.vid}"
-            parts.append(_vtype(vtype, cfg.merger if sp.kind == KIND_MERGER else cfg.hv, sp.tau, sp.sigma))
+            drv = cfg.merger if sp.kind == KIND_MERGER else hv
+            parts.append(_vtype(vtype, drv, sp.tau, sp.sigma, sp.speed_factor, sp.max_speed))
         parts.append(
             f'  <vehicle id="{sp.vid}" type="{vtype}" route="{sp.route}" depart="0" departLane="{sp.lane}"'
             f' departPos="{sp.pos:.3f}" departSpeed="{sp.speed:.3f}" insertionChecks="none"/>\n'
         )
-    if cfg.scenario.inflow > 0:
-        hv = cfg.hv
-        parts.append(_vtype("hv_inflow", hv, float(np.mean(hv.tau_range)), float(np.mean(hv.sigma_range))))
+    for f in plan.flows:
+        parts.append(_vtype(f"t_{f.fid}", hv, f.tau, float(np.mean(hv.sigma_range)), f.speed_factor))
+        rate = f'period="{f.period:.4f}"' if f.period is not None else f'probability="{f.probability:.6f}"'
+        speed = f.speed if isinstance(f.speed, str) else f"{f.speed:.3f}"
         parts.append(
-            f'  <flow id="inflow" type="hv_inflow" route="hw_0" begin="{cfg.sim.decision_period}"'
-            f' end="{cfg.sim.horizon}" probability="{min(1.0, cfg.scenario.inflow / 3600.0):.6f}"'
-            f' departLane="best" departSpeed="desired"/>\n'
+            f'  <flow id="{f.fid}" type="t_{f.fid}" route="{f.route}" begin="{cfg.sim.decision_period}"'
+            f' end="{cfg.sim.horizon}" {rate} departLane="{f.lane}" departSpeed="{speed}"/>\n'
         )
     parts.append("</routes>\n")
     path.write_text("".join(parts))

@@ -3,8 +3,13 @@
 Contract: a `SumoSession` owns the process's single libsumo simulation (libsumo silently replaces a
 running simulation when started twice, so a second live session in one process raises
 `SimulationError`; use worker processes). Each decision step the env calls `advance` (several SUMO steps
-with the AVs' speed commands applied, collisions and arrivals collected) and then `snapshot`, which reads
-every vehicle's state once into numpy arrays. Nothing outside this module imports libsumo.
+with the AVs' speed commands applied, collisions and arrivals collected; with `stop_on` it stops after the
+first step with a collision involving a vehicle of those classes) and then `snapshot`, which reads every
+vehicle's state once into numpy arrays, with the period's collisions (`Collision`, from SUMO's own
+`simulation.getCollisions()`) and arrivals. A collided vehicle is stopped where it is and stays there until
+the env removes it. `run_out(until)` hands the AVs back to SUMO's driver models and steps on to time
+`until` (for flow metrics over a fixed window after an episode ended early). Nothing outside this module
+imports libsumo.
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from cosim.errors import SimulationError
-from cosim.snapshot import KIND_AV, Snapshot
+from cosim.snapshot import KIND_AV, Collision, Snapshot
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +51,7 @@ class SumoSession:
         _LIVE[os.getpid()] = self
         self.net_file = Path(net_file)
         self.step_length = step_length
-        self._edge_index = edge_index  # edge id -> the snapshot's edge index
+        self._edge_index = edge_index  # edge id (normal or junction-internal) -> the snapshot's edge index
         self._kind_of = kind_of  # vehicle id -> KIND_*
         self.drive_avs = drive_avs  # False: SUMO's own models drive the AVs (the all-human baseline)
         self.args = [
@@ -67,6 +72,9 @@ class SumoSession:
         self._commanded: dict[str, float] = {}
         self._crashed: set[str] = set()  # every vehicle in a collision this episode
         self._crashed_period: set[str] = set()  # ... of which newly in the last `advance`
+        self._pairs: set[frozenset[str]] = set()  # colliding pairs seen this episode (SUMO repeats them)
+        self._collisions: list[Collision] = []  # first seen since the last snapshot
+        self._arrived: list[str] = []  # since the last snapshot
 
     # -- lifecycle ----------------------------------------------------------------------------------
     def load(self, route_file: Path, seed: int, extra_args: Sequence[str] = ()) -> None:
@@ -82,10 +90,9 @@ class SumoSession:
                 self._started = True
         except (ls.TraCIException, ls.FatalTraCIError) as exc:
             raise SimulationError(f"SUMO failed to start with net {self.net_file}: {exc}") from None
-        self._static.clear()
-        self._commanded.clear()
-        self._crashed.clear()
-        self._crashed_period.clear()
+        for state in (self._static, self._commanded, self._crashed, self._crashed_period, self._pairs,
+                      self._collisions, self._arrived):
+            state.clear()
         self._sim_step()  # inserts the t = 0 vehicles
 
     def end_simulation(self) -> None:
@@ -109,19 +116,35 @@ class SumoSession:
             ls.simulationStep()
         except (ls.TraCIException, ls.FatalTraCIError) as exc:
             raise SimulationError(f"SUMO failed during simulationStep: {exc}") from None
-        collided = ls.simulation.getCollidingVehiclesIDList()
-        new = [v for v in collided if v not in self._crashed]
-        for vid in new:
-            # A wreck stops where it is; the env decides when to take it off the road.
-            ls.vehicle.setSpeedMode(vid, 0)
-            ls.vehicle.setLaneChangeMode(vid, 0)
-            ls.vehicle.setSpeed(vid, 0.0)
+        collisions = ls.simulation.getCollisions()
+        if collisions:
+            self._on_collisions(collisions)
+        arrived = ls.simulation.getArrivedIDList()
+        for vid in arrived:
             self._commanded.pop(vid, None)
-        self._crashed.update(new)
-        for vid in ls.simulation.getArrivedIDList():
-            self._commanded.pop(vid, None)
+        self._arrived.extend(arrived)
         for vid in ls.simulation.getDepartedIDList():
             self._on_insert(vid)
+
+    def _on_collisions(self, collisions: Sequence) -> None:
+        ls = _libsumo()
+        now = ls.simulation.getTime()
+        for c in collisions:
+            pair = frozenset((c.collider, c.victim))
+            if pair in self._pairs:
+                continue
+            self._pairs.add(pair)
+            kinds = [self._static[v][0] if v in self._static else self._kind_of(v) for v in (c.collider, c.victim)]
+            self._collisions.append(Collision(now, c.collider, c.victim, *kinds, c.type, c.lane))
+            for vid in (c.collider, c.victim):
+                if vid in self._crashed:
+                    continue
+                # A wreck stops where it is; the env decides when to take it off the road.
+                ls.vehicle.setSpeedMode(vid, 0)
+                ls.vehicle.setLaneChangeMode(vid, 0)
+                ls.vehicle.setSpeed(vid, 0.0)
+                self._commanded.pop(vid, None)
+                self._crashed.add(vid)
 
     def _on_insert(self, vid: str) -> None:
         ls = _libsumo()
@@ -136,11 +159,13 @@ class SumoSession:
             ls.vehicle.setSpeed(vid, speed)  # held from now on, not left to the car-following model
 
     def advance(self, n_steps: int, target_speed: dict[str, float], accel: float, decel: float,
-                max_speed: float) -> None:
+                max_speed: float, stop_on: frozenset[int] = frozenset()) -> None:
         """Run `n_steps` SUMO steps; each step moves every live AV's speed toward its target within
-        [-decel, +accel] * step and [0, max_speed], since SUMO ignores these limits at speed mode 0."""
+        [-decel, +accel] * step and [0, max_speed], since SUMO ignores these limits at speed mode 0.
+        Stops after the first step with a new collision involving a vehicle of a class in `stop_on`."""
         ls = _libsumo()
         before = set(self._crashed)
+        seen = len(self._collisions)
         dv_up, dv_down = accel * self.step_length, decel * self.step_length
         # SUMO keeps the last setSpeed: only AVs still on their way to the target need a command.
         ramping = {v: t for v, t in target_speed.items() if self._commanded.get(v, t) != t}
@@ -156,7 +181,24 @@ class SumoSession:
                 if v == target:  # the last increment lands exactly on the target
                     del ramping[vid]
             self._sim_step()
+            new = self._collisions[seen:]
+            if stop_on and any(c.collider_kind in stop_on or c.victim_kind in stop_on for c in new):
+                break
+            seen = len(self._collisions)
         self._crashed_period = self._crashed - before
+
+    def run_out(self, until: float) -> None:
+        """Hand the AVs that are not wrecks back to SUMO's models (safe driving, own lane changes) and step
+        on until simulation time `until` [s]; collisions are handled as during the episode."""
+        ls = _libsumo()
+        for vid in list(self._commanded):
+            ls.vehicle.setSpeedMode(vid, 31)  # SUMO's defaults: every safety check on
+            ls.vehicle.setLaneChangeMode(vid, 1621)
+            ls.vehicle.setSpeed(vid, -1)
+        self._commanded.clear()
+        half = 0.5 * self.step_length
+        while ls.simulation.getTime() < until - half:
+            self._sim_step()
 
     def change_lane(self, vid: str, direction: int) -> None:
         """Lane change by +1 (left) or -1 (right) in the next step; lane change mode 0 skips SUMO's gap
@@ -188,8 +230,11 @@ class SumoSession:
         x, y, angle, speed, edge, lane, lane_pos, dist, kind, length, width = (*a[:, :8].T, *a[:, 8:].T)
         # SUMO: angle in degrees clockwise from north, position at the front bumper.
         heading = np.radians(90.0 - angle)
+        events = {"collisions": tuple(self._collisions), "arrived": tuple(self._arrived)}
+        self._collisions.clear()
+        self._arrived.clear()
         return Snapshot(
-            time=ls.simulation.getTime(), ids=tuple(ids), kind=kind.astype(np.int8),
+            time=ls.simulation.getTime(), ids=tuple(ids), kind=kind.astype(np.int8), **events,
             x=x - 0.5 * length * np.cos(heading), y=y - 0.5 * length * np.sin(heading),
             heading=np.remainder(heading, 2 * math.pi), speed=speed, edge=edge.astype(np.int32),
             lane=lane.astype(np.int32), lane_pos=lane_pos, distance=dist, length=length, width=width,

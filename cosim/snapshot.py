@@ -17,6 +17,19 @@ KIND_AV, KIND_HV, KIND_MERGER = 0, 1, 2
 
 
 @dataclass(frozen=True)
+class Collision:
+    """One collision as SUMO reported it (`simulation.getCollisions()`), first seen at `time`."""
+
+    time: float  # [s]
+    collider: str  # SUMO's collider: the vehicle behind on the lane where they overlap
+    victim: str
+    collider_kind: int  # KIND_*
+    victim_kind: int
+    sumo_type: str  # SUMO's collision type: "collision" (on a lane), "junction", ...
+    lane: str  # lane id where SUMO found it (":"-prefixed inside a junction)
+
+
+@dataclass(frozen=True)
 class Snapshot:
     time: float  # [s] simulation time
     ids: tuple[str, ...]  # (V,) vehicle ids
@@ -25,13 +38,15 @@ class Snapshot:
     y: np.ndarray  # (V,) float64 [m] centre
     heading: np.ndarray  # (V,) float64 [rad]
     speed: np.ndarray  # (V,) float64 [m/s]
-    edge: np.ndarray  # (V,) int32 index into RoadNet.edge_ids; -1 on a junction-internal edge
+    edge: np.ndarray  # (V,) int32 RoadNet.index_of: normal edges, then junction-internal ones; -1 unknown
     lane: np.ndarray  # (V,) int32 lane index on that edge (0 = rightmost)
     lane_pos: np.ndarray  # (V,) float64 [m] front bumper from the start of the lane (SUMO convention)
     distance: np.ndarray  # (V,) float64 [m] odometer since insertion
     length: np.ndarray  # (V,) float64 [m]
     width: np.ndarray  # (V,) float64 [m]
     crashed: np.ndarray  # (V,) bool: in a collision during the last decision period
+    collisions: tuple[Collision, ...] = ()  # collisions first seen during the last decision period
+    arrived: tuple[str, ...] = ()  # vehicles that reached the end of their route during the last period
     _rows: dict[str, int] = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -52,6 +67,7 @@ class Snapshot:
     def build(cls, time: float = 0.0, **columns: Sequence) -> Snapshot:
         """A snapshot from per-vehicle lists, with defaults for omitted columns (for tests and tools)."""
         ids = tuple(columns.pop("ids"))
+        events = {k: tuple(columns.pop(k)) for k in ("collisions", "arrived") if k in columns}
         n = len(ids)
         defaults = {
             "kind": (np.int8, KIND_HV), "x": (np.float64, 0.0), "y": (np.float64, 0.0),
@@ -66,4 +82,4 @@ class Snapshot:
             name: (np.asarray(columns[name], dtype=dt) if name in columns else np.full(n, fill, dtype=dt))
             for name, (dt, fill) in defaults.items()
         }
-        return cls(time=time, ids=ids, **arrays)
+        return cls(time=time, ids=ids, **arrays, **events)

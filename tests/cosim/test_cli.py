@@ -18,7 +18,9 @@ def test_build_net_then_run_scenario_on_it(tmp_path: Path, caplog: pytest.LogCap
                  "--set", f"net.file={out / 'merge.net.xml'}", "--set", "scenario.n_hvs=4"]) == 0
     assert "random   seed 0" in caplog.text
     routes = (tmp_path / "routes" / "episode_0.rou.xml").read_text()
-    assert routes.count("<vehicle ") == 4 + 4 + 1 and 'carFollowModel="IDM"' in routes
+    # The default scene: 4 AVs in the stream, 4 HVs beside it, the merging vehicle, and the stream's HVs.
+    assert routes.count('type="av"') == 4 and routes.count('id="merger"') == 1
+    assert routes.count("<vehicle ") > 4 + 4 + 1 and 'carFollowModel="IDM"' in routes
 
 
 def test_bench_prints_ratios(capsys: pytest.CaptureFixture[str]) -> None:

@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def test_default_yaml_resolves_net_relative_to_the_config() -> None:
     cfg = load_config(ROOT / "configs" / "default.yaml")
-    assert Path(cfg.net.file) == ROOT / "sumo_net" / "merge" / "merge.net.xml"
+    assert Path(cfg.net.file) == ROOT / "sumo_net" / "dilemma" / "dilemma.net.xml"
     assert cfg.steps_per_decision == 10
     assert cfg.observation.frames == OBSERVATION_PRESETS["default"]["frames"]
 
@@ -79,7 +79,10 @@ def test_base_config_and_path_resolution(tmp_path: Path, monkeypatch: pytest.Mon
     (exp / "child.yaml").write_text(f"base: {ROOT / 'configs' / 'default.yaml'}\nreward:\n  phi: 0.5\n")
     cfg = load_config(exp / "child.yaml")
     assert cfg.reward.phi == 0.5 and cfg.scenario.n_avs == load_config(ROOT / "configs" / "default.yaml").scenario.n_avs
-    assert Path(cfg.net.file) == ROOT / "sumo_net" / "merge" / "merge.net.xml"  # relative to the base's folder
+    assert Path(cfg.net.file) == ROOT / "sumo_net" / "dilemma" / "dilemma.net.xml"  # relative to the base's folder
+    # A base of a base: free_flow names default.yaml and its own net, both relative to configs/.
+    free_flow = load_config(ROOT / "configs" / "free_flow.yaml")
+    assert Path(free_flow.net.file) == ROOT / "sumo_net" / "merge" / "merge.net.xml"
     (exp / "own.yaml").write_text("net:\n  file: nets/x.net.xml\n")
     assert load_config(exp / "own.yaml").net.file == str(exp / "nets" / "x.net.xml")
     monkeypatch.chdir(tmp_path)  # a command-line override is relative to the working directory

@@ -17,12 +17,14 @@ from cosim.errors import SimulationError
 from cosim.metrics import EpisodeTracker
 from cosim.policies import scripted_policy
 
+# The env's mechanics on the free-flow scene: AVs spread over three lanes. The dilemma has tests of its own.
+FREE = "configs/free_flow.yaml"
 SMALL = {"scenario.n_avs": 3, "scenario.n_hvs": 6}
 
 
 @pytest.fixture
 def env() -> Iterator[MergeEnv]:
-    e = cosim.parallel_env("configs/default.yaml", SMALL)
+    e = cosim.parallel_env(FREE, SMALL)
     yield e
     e.close()
 
@@ -47,7 +49,7 @@ def test_same_seed_same_episode() -> None:
 
     traces = []
     for _ in range(2):
-        e = cosim.parallel_env("configs/default.yaml", SMALL)
+        e = cosim.parallel_env(FREE, SMALL)
         try:
             traces.append(run_episode(e, 7, fixed_actions))
         finally:
@@ -59,7 +61,7 @@ def test_same_seed_same_episode() -> None:
         for agent in a[0]:
             np.testing.assert_array_equal(a[0][agent], b[0][agent])
     # A different seed is a different scene.
-    e = cosim.parallel_env("configs/default.yaml", SMALL)
+    e = cosim.parallel_env(FREE, SMALL)
     try:
         other = run_episode(e, 8, fixed_actions)
     finally:
@@ -144,8 +146,9 @@ def test_acceleration_limit_is_applied(env: MergeEnv) -> None:
                                        cfg.av.max_speed - v0), abs=1e-6)
 
 
-def test_provoked_collision_ends_the_right_agents() -> None:
-    env = cosim.parallel_env("configs/default.yaml", {"scenario.n_avs": 3, "scenario.n_hvs": 0})
+@pytest.mark.parametrize("on_collision", ["end", "remove"])
+def test_provoked_collision_ends_the_right_agents(on_collision: str) -> None:
+    env = cosim.parallel_env(FREE, {"scenario.n_avs": 3, "scenario.n_hvs": 0, "sim.on_collision": on_collision})
     try:
         env.reset(seed=0)
         snap = env.snapshot
@@ -153,30 +156,42 @@ def test_provoked_collision_ends_the_right_agents() -> None:
         front, bystander, rear = sorted(env.agents, key=lambda a: -snap.lane_pos[rows[a]])
         r = rows[front]
         edge = env.road.edge_ids[snap.edge[r]]
-        # The bystander steps aside, then the rear AV is put 2 m behind the front one, in its lane
+        # The bystander steps aside, then the rear AV is put 0.5 m behind the front one, in its lane
         # (moveTo takes the front-bumper position; jumping over a vehicle in the lane would count as a crash).
         aside = next(lane for lane in list(np.flatnonzero(env.zone.through[snap.edge[r]])) if lane != snap.lane[r])
         libsumo.vehicle.moveTo(bystander, f"{edge}_{aside}", snap.lane_pos[rows[bystander]])
-        libsumo.vehicle.moveTo(rear, f"{edge}_{snap.lane[r]}", snap.lane_pos[r] - snap.length[r] - 2.0)
+        libsumo.vehicle.moveTo(rear, f"{edge}_{snap.lane[r]}", snap.lane_pos[r] - snap.length[r] - 0.5)
         ended: dict[str, bool] = {}
         for _ in range(5):
             acts = {a: int(Action.IDLE) for a in env.agents}
             acts.update({a: int(act) for a, act in ((front, Action.DECELERATE), (rear, Action.ACCELERATE))
                          if a in env.agents})
-            _, _, term, _, info = env.step(acts)
+            t0 = env.snapshot.time
+            _, _, term, trunc, info = env.step(acts)
             ended.update({a: t for a, t in term.items() if t})
             if front in ended:
                 break
+        left = list(env.agents)
+        crash_time = env.snapshot.time
+        period = env.cfg.sim.decision_period
     finally:
         env.close()
     assert ended.get(front) and ended.get(rear)
-    assert bystander in env.agents, "an AV outside the crash keeps driving"
     assert info[front]["reward_terms"]["collision"] == -env.cfg.reward.weight("collision")
     assert info[bystander]["reward_terms"]["collision"] == 0
+    (c,) = info[front]["episode"]["collisions"].split(";") if on_collision == "end" else [None]
+    if on_collision == "end":
+        # The paper's rule: the episode ends at the SUMO step of the collision; the bystander is cut, not ended.
+        assert left == [] and trunc[bystander] and not term[bystander]
+        assert crash_time < t0 + period - 1e-9
+        assert f"{rear}>{front} rear_end fault={rear} av" in c
+    else:
+        assert left == [bystander], "an AV outside the crash keeps driving"
+        assert crash_time == pytest.approx(t0 + period)
 
 
 def test_merge_is_detected() -> None:
-    env = cosim.parallel_env("configs/default.yaml", SMALL)
+    env = cosim.parallel_env(FREE, SMALL)
     try:
         env.reset(seed=1)
         policy = scripted_policy()
@@ -200,7 +215,7 @@ def test_merge_is_detected() -> None:
 
 
 def test_stuck_merging_vehicle_ends_the_episode_as_failed() -> None:
-    env = cosim.parallel_env("configs/default.yaml", SMALL)
+    env = cosim.parallel_env(FREE, SMALL)
     try:
         env.reset(seed=1)
         libsumo.vehicle.setLaneChangeMode("merger", 0)  # it never leaves the acceleration lane
@@ -215,19 +230,23 @@ def test_stuck_merging_vehicle_ends_the_episode_as_failed() -> None:
     assert summary["length"] < env.max_steps
 
 
-def test_time_limit_truncates(env: MergeEnv) -> None:
-    env.reset(seed=2)
-    steps = 0
-    while env.agents:
-        _, _, term, trunc, _ = env.step({a: int(Action.IDLE) for a in env.agents})
-        steps += 1
+def test_time_limit_truncates() -> None:
+    env = cosim.parallel_env(FREE, {**SMALL, "sim.av_driver": "sumo"})  # SUMO's safe drivers: no crash
+    try:
+        env.reset(seed=2)
+        steps = 0
+        while env.agents:
+            _, _, term, trunc, _ = env.step({a: int(Action.IDLE) for a in env.agents})
+            steps += 1
+    finally:
+        env.close()
     assert steps == env.max_steps
     assert all(trunc[a] != term[a] for a in trunc)
 
 
 def test_reward_is_the_svo_combination_of_reported_utilities() -> None:
     for phi in (0.0, math.pi / 4, math.pi / 2):
-        env = cosim.parallel_env("configs/default.yaml", {**SMALL, "reward.phi": phi})
+        env = cosim.parallel_env(FREE, {**SMALL, "reward.phi": phi})
         try:
             env.reset(seed=0)
             _, rew, _, _, info = env.step({a: int(Action.ACCELERATE) for a in env.agents})
@@ -241,7 +260,7 @@ def test_reward_is_the_svo_combination_of_reported_utilities() -> None:
 
 
 def test_second_generated_net_runs_unchanged(two_lane_net) -> None:
-    env = cosim.parallel_env("configs/default.yaml", {**SMALL, "net.file": str(two_lane_net)})
+    env = cosim.parallel_env(FREE, {**SMALL, "net.file": str(two_lane_net)})
     try:
         parallel_api_test(env, num_cycles=10)
         trace = run_episode(env, 0, scripted_policy())
@@ -253,13 +272,13 @@ def test_second_generated_net_runs_unchanged(two_lane_net) -> None:
 
 def test_second_live_env_in_one_process_is_refused(env: MergeEnv) -> None:
     with pytest.raises(SimulationError, match="worker processes"):
-        cosim.parallel_env("configs/default.yaml", SMALL)
+        cosim.parallel_env(FREE, SMALL)
     env.close()
-    cosim.parallel_env("configs/default.yaml", SMALL).close()  # fine once the first is closed
+    cosim.parallel_env(FREE, SMALL).close()  # fine once the first is closed
 
 
 def test_render_shows_scene_and_velocity_map() -> None:
-    env = cosim.parallel_env("configs/default.yaml", SMALL, render_mode="rgb_array")
+    env = cosim.parallel_env(FREE, SMALL, render_mode="rgb_array")
     try:
         env.reset(seed=0)
         frame = env.render()
@@ -272,7 +291,7 @@ def test_render_shows_scene_and_velocity_map() -> None:
 def test_lane_change_does_not_follow_the_av_onto_the_acceleration_lane() -> None:
     # Lane indices shift by one where the acceleration lane starts: a lane change just before the junction
     # must leave the AV on the same through lane after it, not on the acceleration lane.
-    env = cosim.parallel_env("configs/default.yaml", {"scenario.n_avs": 1, "scenario.n_hvs": 0})
+    env = cosim.parallel_env(FREE, {"scenario.n_avs": 1, "scenario.n_hvs": 0})
     try:
         env.reset(seed=0)
         hw_in = env.desc.highway[0]
@@ -290,7 +309,7 @@ def test_lane_change_does_not_follow_the_av_onto_the_acceleration_lane() -> None
 
 
 def test_episode_summary_is_the_trackers_row_over_every_vehicle() -> None:
-    env = cosim.parallel_env("configs/default.yaml", {**SMALL, "scenario.inflow": 1800.0})
+    env = cosim.parallel_env(FREE, {**SMALL, "scenario.inflow": 1800.0})
     try:
         env.reset(seed=4)
         at_reset = set(env.snapshot.ids)

@@ -106,7 +106,9 @@ def _snap(t: float, ids: list[str], kinds: list[int], x: list[float], edge: list
 _THROUGH = np.zeros((5, 3), dtype=bool)  # (edges + 1, lanes): the last row is junction internals
 _THROUGH[[0, 2], :] = True
 _THROUGH[1, 1:] = True
-ZONE = MergeZone(merge_edge=1, accel_lanes=frozenset({0}), accel_end=100.0, through=_THROUGH)
+_RANK = np.where(_THROUGH, np.cumsum(_THROUGH, axis=1) - 1, -1)
+ZONE = MergeZone(merge_edge=1, accel_lanes=frozenset({0}), accel_end=100.0, through=_THROUGH, rank=_RANK,
+                 target_rank=0)
 CHAIN = Chainage(offsets=np.array([0.0, 100.0, 200.0, 50.0]), merge_start=100.0, merge_end=200.0,
                  highway_end=1000.0)
 
@@ -186,6 +188,14 @@ def test_chainage_of_the_real_net(two_lane_net: Path) -> None:
     desc = load_net_description(road)
     ch = Chainage.from_net(desc, road)
     ramp_end = ch.offsets[road.edge_index[desc.ramp[-1]]] + road.edge_length(desc.ramp[-1])
-    assert ramp_end == pytest.approx(ch.merge_start)
+    assert ramp_end + road.junction_length(desc.ramp[-1], desc.merge_edge) == pytest.approx(ch.merge_start)
+    # Through a junction the axis goes on where the lane left ends, up to where the next edge starts:
+    # positions stay continuous (no NaN on junction-internal lanes).
+    for edge, lanes in road.internal.items():
+        k = road.index_of[edge]
+        start = ch.offsets[road.index_of[lanes[0].from_edge]] + road.edge_length(lanes[0].from_edge)
+        assert ch.offsets[k] == pytest.approx(start)
+        if lanes[0].from_edge in desc.highway:
+            assert ch.offsets[k] + lanes[0].length == pytest.approx(ch.offsets[road.index_of[lanes[0].to_edge]])
     assert ch.highway_end == pytest.approx(desc.highway_length(road))
     assert ch.merge_end - ch.merge_start == pytest.approx(road.edge_length(desc.merge_edge))

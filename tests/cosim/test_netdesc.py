@@ -48,8 +48,12 @@ def test_chainage_helpers(net: RoadNet) -> None:
     desc = load_net_description(net, None)
     offsets = desc.highway_offsets(net)
     assert offsets["hw_in"] == 0.0
-    assert offsets["hw_merge"] == pytest.approx(net.edge_length("hw_in"))
-    assert offsets["hw_out"] == pytest.approx(net.edge_length("hw_in") + net.edge_length("hw_merge"))
+    # The ways through the junctions count, as in SUMO's odometer.
+    junction = net.junction_length("hw_in", "hw_merge")
+    assert 0.5 < junction < 3.0 and net.junction_length("hw_in", "hw_out") == 0.0
+    assert offsets["hw_merge"] == pytest.approx(net.edge_length("hw_in") + junction)
+    assert offsets["hw_out"] == pytest.approx(offsets["hw_merge"] + net.edge_length("hw_merge")
+                                              + net.junction_length("hw_merge", "hw_out"))
     assert desc.highway_position(net, 0.0) == ("hw_in", 0.0)
     edge, pos = desc.highway_position(net, offsets["hw_merge"] + 10.0)
     assert edge == "hw_merge" and pos == pytest.approx(10.0)

@@ -25,7 +25,7 @@ from cosim.roadnet import load_roadnet
 
 TRIPS = """<tripinfos>
     <tripinfo id="a" duration="20.00" routeLength="500.00" timeLoss="2.00" vaporized=""/>
-    <tripinfo id="b" duration="10.00" routeLength="100.50" timeLoss="4.00" vaporized="traci"/>
+    <tripinfo id="b" arrival="8.00" duration="10.00" routeLength="100.50" timeLoss="4.00" vaporized="traci"/>
 </tripinfos>
 """
 LOOPS = """<detector>
@@ -39,10 +39,11 @@ def test_parse_hand_written_outputs(tmp_path: Path) -> None:
     (tmp_path / TRIPINFO_FILE).write_text(TRIPS)
     (tmp_path / DETECTOR_FILE).write_text(LOOPS)
     assert read_detectors(tmp_path / DETECTOR_FILE) == 6
-    assert [t["id"] for t in read_tripinfo(tmp_path / TRIPINFO_FILE)] == ["a", "b"]
+    assert [t["id"] for t in read_tripinfo(tmp_path / TRIPINFO_FILE, 20.0)] == ["a", "b"]
     out = read_episode_outputs(tmp_path, duration=20.0)
     assert out.detector_count == 6 and out.throughput_vph == pytest.approx(6 * 3600 / 20)
-    assert out.travel_time == 15.0 and out.time_loss == 3.0 and out.n_trips == 2
+    # b was taken off the road (a removed wreck) at 8 s: it stood for the window's last 12 s.
+    assert out.travel_time == (20.0 + 22.0) / 2 and out.time_loss == (2.0 + 16.0) / 2 and out.n_trips == 2
     assert out.distance == {"a": 500.0, "b": 100.5}
 
 
@@ -143,6 +144,6 @@ def test_sumo_drives_the_avs_when_asked(tmp_path: Path) -> None:
             snap = env.snapshot
             assert snap.speed[snap.rows_of(env.possible_agents)].min() > 10.0
             env.flush_outputs()
-            assert env.sumo_outputs[seed].n_trips == len(env.possible_agents) + 13
+            assert env.sumo_outputs[seed].n_trips == len(env.tracker.distance)  # every vehicle of the episode
     finally:
         env.close()

@@ -34,16 +34,19 @@ def test_reads_edges_lanes_and_shapes(two_lane_net: Path) -> None:
         net.edge("nope")
 
 
-def test_lane_shapes_and_bounds_cover_every_lane(two_lane_net: Path) -> None:
+def test_lane_shapes_and_junction_internal_lanes(two_lane_net: Path) -> None:
     net = load_roadnet(two_lane_net)
     shapes = net.lane_shapes()
     assert len(shapes) == sum(net.num_lanes(e) for e in net.edge_ids) == 8
-    xmin, ymin, xmax, ymax = net.bounds
     pts = np.concatenate([s for s, _ in shapes])
-    assert (pts[:, 0] >= xmin).all() and (pts[:, 0] <= xmax).all()
-    assert (pts[:, 1] >= ymin).all() and (pts[:, 1] <= ymax).all()
-    assert ymax == pytest.approx(0.0)  # the highway's left border lies on y = 0
-    assert xmax == pytest.approx(680.0 + 1.6)  # highway end plus half a lane width
+    assert pts[:, 1].max() == pytest.approx(-1.6)  # the highway's left border (y = 0) minus half a lane
+    assert pts[:, 0].max() == pytest.approx(680.0)  # the highway's end
+    # Internal lanes: indexed after the normal edges, each with the normal lane it leaves.
+    n = len(net.edge_ids)
+    assert sorted(net.index_of[e] for e in net.internal_ids) == list(range(n, n + len(net.internal)))
+    leaving = {(lane.from_edge, lane.to_edge) for lanes in net.internal.values() for lane in lanes}
+    assert leaving == {("hw_in", "hw_merge"), ("ramp", "hw_merge"), ("hw_merge", "hw_out")}
+    assert all(lane.length > 0 for lanes in net.internal.values() for lane in lanes)
 
 
 def test_missing_file(tmp_path: Path) -> None:
