@@ -2,18 +2,22 @@
 
 Contract:
 - `save_checkpoint(path, payload)` writes via a temp file in the same folder and `os.replace`, so a
-  crash mid-write leaves the previous checkpoint intact.
+  crash mid-write leaves the previous checkpoint intact; beside it goes `policy.pt`, the trained networks
+  with their spec, counters and config but without optimizer, acting copies or RNG states: a few MB for
+  evaluation and sharing, where the resumable checkpoint is several times that.
 - `read_checkpoint(path, expect=...)` returns the payload, or raises `CheckpointError` (a
   `cosim.errors.CosimError`) naming the file when it is missing, unreadable, not ours, or incompatible
   with the expected obs shape / dtype / number of agents / policy layout.
-- `load_policy(path)` returns `(policies, meta)`: `policies` maps each agent name to its trained
-  `ActorCritic` (eval mode; the same object for every agent when the policy is shared), whose
-  `act(obs (B, F, C, H, W), greedy)` gives actions; `meta` holds the checkpoint's spec, counters and config.
+- `load_policy(path)` (a run folder, its `policy.pt` or a checkpoint) returns `(policies, meta)`: `policies`
+  maps each agent name to its trained `ActorCritic` (eval mode; the same object for every agent when the
+  policy is shared), whose `act(obs (B, F, C, H, W), greedy)` gives actions; `meta` holds the checkpoint's
+  spec, counters and config.
   `act_agents(policies, obs, greedy)` acts for named agents, one forward per network (agents sharing a
   network are batched), the way evaluation plays a checkpoint.
-Payload layout (format "cosim-ma-a2c", version 1): spec {agents, obs_shape, obs_dtype, n_actions,
-shared_policy, feature_dim, head_hidden}, policy (MultiAgentPolicy.state_dict()), counters, rng
-{python, numpy, torch}, train (TrainConfig as a dict), config (Config.to_dict()), phis (each AV's SVO [rad]).
+Payload layout (format "cosim-ma-a2c", version 2): spec {agents, obs_shape, obs_dtype, n_actions,
+shared_policy, feature_dim, head_hidden}, policy (MultiAgentPolicy.state_dict()), counters (with train_s),
+rng {python, numpy, torch}, train (TrainConfig as a dict), config (Config.to_dict()), phis (each AV's SVO
+[rad]). The policy file ("cosim-policy", same version): spec, nets, counters, train, config, phis.
 """
 
 from __future__ import annotations
@@ -30,8 +34,10 @@ from agents.model import ActorCritic
 from cosim.errors import CosimError
 from cosim.files import atomic_path
 
-FORMAT, VERSION = "cosim-ma-a2c", 1
-CHECKPOINT_NAME = "checkpoint.pt"
+FORMAT, VERSION = "cosim-ma-a2c", 2
+POLICY_FORMAT = "cosim-policy"
+CHECKPOINT_NAME = "checkpoint.pt"  # everything a resume needs
+POLICY_NAME = "policy.pt"  # the trained networks alone, for evaluation and sharing
 
 
 class CheckpointError(CosimError):
@@ -39,8 +45,13 @@ class CheckpointError(CosimError):
 
 
 def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
+    """The resumable checkpoint at `path`, then the policy-only file beside it (`POLICY_NAME`)."""
     with atomic_path(path) as tmp:
         torch.save({"format": FORMAT, "version": VERSION, **payload}, tmp)
+    small = {"format": POLICY_FORMAT, "version": VERSION, "nets": payload["policy"]["nets"],
+             **{k: payload[k] for k in ("spec", "counters", "train", "config", "phis") if k in payload}}
+    with atomic_path(path.with_name(POLICY_NAME)) as tmp:
+        torch.save(small, tmp)
 
 
 def read_checkpoint(path: Path, expect: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -101,16 +112,34 @@ def build_net(spec: dict[str, Any]) -> ActorCritic:
                        head_hidden=spec["head_hidden"])
 
 
+def _read_policy_file(path: Path) -> dict[str, Any]:
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise CheckpointError(f"policy file {path}: corrupt ({type(exc).__name__})") from None
+    if not isinstance(payload, dict) or payload.get("version") != VERSION or "nets" not in payload:
+        raise CheckpointError(f"policy file {path}: not a {POLICY_FORMAT} file of version {VERSION}")
+    return payload
+
+
 def load_policy(path: str | Path, device: str = "cpu") -> tuple[dict[str, ActorCritic], dict[str, Any]]:
-    """Trained policies of a run, one per agent name, and the checkpoint's metadata (see module doc)."""
+    """Trained policies of a run, one per agent name, and the checkpoint's metadata (see module doc). `path`: a
+    run folder (its policy file, else its checkpoint), a policy file or a checkpoint."""
     path = Path(path)
     if path.is_dir():
-        path = path / CHECKPOINT_NAME
-    payload = read_checkpoint(path)
+        path = path / POLICY_NAME if (path / POLICY_NAME).is_file() else path / CHECKPOINT_NAME
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path}: not found")
+    if path.name == POLICY_NAME:
+        payload = _read_policy_file(path)
+        state = payload["nets"]
+    else:
+        payload = read_checkpoint(path)
+        state = payload["policy"]["nets"]
     spec = payload["spec"]
     try:
         nets = []
-        for sd in payload["policy"]["nets"]:
+        for sd in state:
             net = build_net(spec)
             net.load_state_dict(sd)
             nets.append(net.to(device).eval())

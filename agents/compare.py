@@ -93,6 +93,9 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
     names = [e.label for e in evals]
     if len(set(names)) != len(names):
         raise CosimError(f"runs need distinct labels, got {names}; pass --labels")
+    mismatches = incompatibilities(evals)
+    for line in mismatches:
+        log.warning("runs not directly comparable: %s", line)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     # Recomputed from episodes.csv, so every run is summarised the same way (and as `cosim evaluate` did).
@@ -116,8 +119,25 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
                         "eval_dir": str(e.eval_dir)} for e in evals}
     atomic_write_text(out_dir / "summary.json", json.dumps(result, indent=2) + "\n")
     atomic_write_text(out_dir / "summary.csv", _summary_csv(metrics))
-    atomic_write_text(out_dir / "report.md", _report(evals, metrics, episodes, figures, per_run, out_dir))
+    atomic_write_text(out_dir / "report.md", _report(evals, metrics, episodes, figures, per_run, out_dir,
+                                                     mismatches))
     return result
+
+
+# What makes two evaluations comparable, as summary.json records it: the same episodes of the same scenario.
+COMPARABLE = {"net": "net", "first_seed": "first evaluation seed", "requested_episodes": "episodes",
+              "scenario_sha256": "scenario (net, simulation, drivers, observation: scenario_sha256)"}
+
+
+def incompatibilities(evals: Sequence[Evaluation]) -> list[str]:
+    """One line per summary key whose value differs between the evaluations, naming each run's value."""
+    lines = []
+    for key, what in COMPARABLE.items():
+        values = {e.label: e.summary.get(key) for e in evals}
+        if len({json.dumps(v) for v in values.values()}) > 1:
+            shown = {k: (v[:12] if key == "scenario_sha256" and isinstance(v, str) else v) for k, v in values.items()}
+            lines.append(f"different {what}: " + ", ".join(f"{k}: {v}" for k, v in shown.items()))
+    return lines
 
 
 def _summary_csv(metrics: dict[str, dict[str, dict[str, float]]]) -> str:
@@ -133,11 +153,16 @@ def _summary_csv(metrics: dict[str, dict[str, dict[str, float]]]) -> str:
 
 
 def _report(evals: Sequence[Evaluation], metrics: dict, episodes: dict[str, int], figures: dict[str, Path],
-            per_run: dict[str, list[Path]], out_dir: Path) -> str:
+            per_run: dict[str, list[Path]], out_dir: Path, mismatches: Sequence[str] = ()) -> str:
     conf = evals[0].summary.get("confidence", 0.95)
     lines = ["# Evaluation report", "",
              "Runs: " + ", ".join(f"**{e.label}** ({e.summary.get('policy')}, `{e.eval_dir}`)" for e in evals),
-             "", f"Each cell: mean over episodes [{conf:.0%} interval: Wilson score for the crash and merge rates, "
+             ""]
+    if mismatches:
+        lines += ["> **Warning: these runs were not evaluated on the same episodes of the same scenario;** their "
+                  "differences below mix the policies' effect with that of:", ">"]
+        lines += [f"> - {m}" for m in mismatches] + [""]
+    lines += [f"Each cell: mean over episodes [{conf:.0%} interval: Wilson score for the crash and merge rates, "
              "Student t for the other metrics]. Throughput, travel time and time loss come from SUMO's own "
              "induction loops and tripinfo output.", "",
              format_table(metrics, episodes, markdown=True, confidence=conf), ""]

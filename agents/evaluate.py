@@ -35,6 +35,11 @@ import json
 import logging
 import math
 import multiprocessing as mp
+import multiprocessing.util
+import shutil
+import signal
+import sys
+import tempfile
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,7 +49,7 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from cosim.cli import add_config_arguments
+from cosim.cli import Heartbeat, add_config_arguments
 from cosim.config import Config, load_config, parse_section
 from cosim.control import Action
 from cosim.env import MergeEnv
@@ -206,13 +211,16 @@ class Runner:
 _RUNNER: Runner | None = None  # the worker process's runner
 
 
-def _worker_init(job: Job) -> None:
+def _worker_init(job: Job, tmp_root: str) -> None:
     global _RUNNER
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    tempfile.tempdir = tmp_root  # the parent removes it, also after a worker was killed
     if job.policy.name == CHECKPOINT:
         import torch
 
         torch.set_num_threads(1)  # W workers on W cores
     _RUNNER = Runner(job)
+    mp.util.Finalize(_RUNNER, _RUNNER.close, exitpriority=10)  # closes the env when the pool ends
 
 
 def _worker_run(seed: int) -> dict[str, Any]:
@@ -231,8 +239,17 @@ def run_episodes(job: Job, seeds: Sequence[int], workers: int = 1) -> Iterator[d
             runner.close()
         return
     ctx = mp.get_context("spawn")
-    with ctx.Pool(min(workers, len(seeds)), initializer=_worker_init, initargs=(job,)) as pool:
+    tmp_root = tempfile.mkdtemp(prefix="cosim_eval_")
+    pool = ctx.Pool(min(workers, len(seeds)), initializer=_worker_init, initargs=(job, tmp_root))
+    try:
         yield from pool.imap_unordered(_worker_run, seeds)
+        pool.close()  # the workers exit on their own, closing their envs
+    except BaseException:
+        pool.terminate()
+        raise
+    finally:
+        pool.join()
+        shutil.rmtree(tmp_root, ignore_errors=True)
 
 
 # -- files ---------------------------------------------------------------------------------------------
@@ -258,6 +275,14 @@ def summarize_evaluation(eval_dir: Path, first_seed: int, episodes: int,
     by_seed = {int(r["seed"]): r for r in read_rows(Path(eval_dir) / "episodes.csv") if int(r["seed"]) in wanted}
     rows = [by_seed[s] for s in sorted(by_seed)]
     return rows, summarize(rows, confidence)
+
+
+def scenario_hash(config: Mapping[str, Any]) -> str:
+    """sha256 of what makes the episodes themselves (net, simulation, scenario, drivers, observation), leaving out
+    what policies may differ in when compared: the reward (the SVO angle) and who drives the AVs."""
+    kept = {k: v for k, v in config.items() if k not in ("train", "evaluate", "reward")}
+    kept["sim"] = {k: v for k, v in config.get("sim", {}).items() if k not in ("output_dir", "av_driver")}
+    return hashlib.sha256(json.dumps(kept, sort_keys=True, separators=(",", ":"), default=str).encode()).hexdigest()
 
 
 def config_hash(config: Mapping[str, Any]) -> str:
@@ -292,7 +317,7 @@ def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed
     cfg = load_config(cfg, overrides)
     meta = {"policy": policy.name, "checkpoint": policy.checkpoint, "greedy": policy.greedy,
             "net": cfg.net.file, "run": None if run_dir is None else str(Path(run_dir).resolve()),
-            "config_sha256": config_hash(cfg.to_dict())}
+            "config_sha256": config_hash(cfg.to_dict()), "scenario_sha256": scenario_hash(cfg.to_dict())}
     seeds = [seed + k for k in range(episodes)]
     job = Job(cfg.to_dict(), policy, str(out_dir), frozenset(seeds[:trajectories]))
     Runner(job).close()  # bad nets and checkpoints fail here, before the folder is claimed
@@ -303,9 +328,12 @@ def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed
     todo = [s for s in seeds if s not in done]
     if done & set(seeds):
         log.info("resuming %s: %d of %d episodes already done", out_dir, len(done & set(seeds)), episodes)
-    for row in tqdm(run_episodes(job, todo, workers), total=len(todo), desc=f"evaluate {policy.name}",
-                    unit="ep", leave=False):
+    headless, heartbeat = not sys.stderr.isatty(), Heartbeat(30.0)
+    for k, row in enumerate(tqdm(run_episodes(job, todo, workers), total=len(todo), desc=f"evaluate {policy.name}",
+                                 unit="ep", leave=False, disable=headless), start=1):
         writer.write(row)
+        if headless and heartbeat():
+            log.info("evaluate %s: %d of %d episodes", policy.name, k, len(todo))
     rows, metrics = summarize_evaluation(out_dir, seed, episodes, confidence)
     checks = [float(r["distance_check"]) for r in rows if r.get("distance_check") not in (None, "", "nan")]
     summary = {**meta, "episodes": len(rows), "first_seed": seed, "requested_episodes": episodes,
@@ -389,9 +417,11 @@ def run(args: argparse.Namespace) -> int:
         if args.run is None and args.checkpoint is None:
             raise CosimError("cosim evaluate: give --run RUN (or --checkpoint FILE) for a trained policy, "
                              f"or --policy {{{','.join(BASELINES)}}} for a baseline")
-        from agents.checkpoint import CHECKPOINT_NAME  # torch: a trained policy needs it anyway
+        from agents.checkpoint import CHECKPOINT_NAME, POLICY_NAME  # torch: a trained policy needs it anyway
 
-        checkpoint = args.checkpoint or args.run / CHECKPOINT_NAME
+        # The small policy file where the run has one (the networks alone), else the resumable checkpoint.
+        checkpoint = args.checkpoint or next((args.run / n for n in (POLICY_NAME, CHECKPOINT_NAME)
+                                              if (args.run / n).is_file()), args.run / CHECKPOINT_NAME)
         if not checkpoint.is_file():
             raise CosimError(f"checkpoint {checkpoint}: not found; train the run first (cosim train), pass "
                              f"--checkpoint FILE, or evaluate a baseline with --policy")

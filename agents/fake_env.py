@@ -35,6 +35,7 @@ class CueEnv(ParallelEnv):
         self.agents: list[str] = []
         self.render_mode = render_mode
         self.horizon = horizon
+        self.max_steps = horizon
         self.fail_once_file = fail_once_file
         self.fail_at_step = fail_at_step
         self._high = _HIGH[dtype]

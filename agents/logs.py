@@ -1,42 +1,66 @@
-"""Training logs: CSV files and TensorBoard scalars for updates and episodes, and recent-episode rates.
+"""Training logs: CSV files and TensorBoard scalars for updates and episodes, recent rates, headless log lines.
 
-Contract: `RunLogger(out_dir)` appends to `out_dir/updates.csv` and `out_dir/episodes.csv` (a header is
-written when a file is new, so a resumed run continues the same files) and writes TensorBoard event files
-under `out_dir/tb`. `update(step, row)` and `episode(step, row)` take flat dicts of numbers; rows of one
-file must keep the same keys (episode rows take the union of reward terms seen first, missing ones are
-left empty). `recent` keeps the last 100 episodes for the progress bar's crash / merge rates.
+Contract: `RunLogger(out_dir, updates_done, episodes_done)` appends to `out_dir/updates.csv` and
+`out_dir/episodes.csv` and writes TensorBoard event files under `out_dir/tb`, all against the update
+counter. A resumed run first cuts both CSV files back to the checkpoint it resumes from (rows after
+`updates_done` / `episodes_done`, written by a run that died between checkpoints, would otherwise appear
+twice) and purges TensorBoard events after it. `update(row)` and `episode(row)` take flat dicts of numbers;
+`recent` keeps the last 100 episodes for the progress bar's and the log line's crash / merge rates.
 """
 
 from __future__ import annotations
 
+import csv
+import io
 from collections import deque
 from pathlib import Path
 from typing import Any
 
 from torch.utils.tensorboard import SummaryWriter
 
-from cosim.files import AppendCsv
+from cosim.files import AppendCsv, atomic_write_text
+
+
+def cut_csv(path: Path, key: str, last: int) -> None:
+    """Drop the rows of `path` whose `key` is above `last` (and half-written ones), atomically."""
+    if not path.is_file():
+        return
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows or key not in rows[0]:
+        return
+    col = rows[0].index(key)
+    keep = [rows[0]] + [r for r in rows[1:] if len(r) == len(rows[0]) and r[col] and float(r[col]) <= last]
+    if len(keep) < len(rows):
+        buf = io.StringIO()
+        csv.writer(buf).writerows(keep)
+        atomic_write_text(path, buf.getvalue())
 
 
 class RunLogger:
-    def __init__(self, out_dir: Path, window: int = 100) -> None:
+    def __init__(self, out_dir: Path, updates_done: int = 0, episodes_done: int = 0, window: int = 100) -> None:
+        cut_csv(out_dir / "updates.csv", "update", updates_done)
+        cut_csv(out_dir / "episodes.csv", "episode", episodes_done)
         self.updates = AppendCsv(out_dir / "updates.csv")
         self.episodes = AppendCsv(out_dir / "episodes.csv")
-        self.tb = SummaryWriter(str(out_dir / "tb"))
+        self.tb = SummaryWriter(str(out_dir / "tb"), purge_step=updates_done + 1 if updates_done else None)
         self.recent: deque[dict[str, Any]] = deque(maxlen=window)
 
-    def update(self, step: int, row: dict[str, Any]) -> None:
+    def update(self, row: dict[str, Any]) -> None:
         self.updates.write(row)
         for key, value in row.items():
             if key not in ("update", "episodes", "samples"):
-                self.tb.add_scalar(f"train/{key}", value, step)
+                self.tb.add_scalar(f"train/{key}", value, row["update"])
 
-    def episode(self, step: int, row: dict[str, Any]) -> None:
+    def episode(self, row: dict[str, Any]) -> None:
         self.recent.append(row)
         self.episodes.write(row)
-        for key, value in row.items():
+
+    def episodes_to_tb(self, update: int, rows: list[dict[str, Any]]) -> None:
+        """The mean of each episode column over this update's episodes."""
+        for key in rows[0] if rows else ():
             if key != "episode":
-                self.tb.add_scalar(f"episode/{key}", value, step)
+                self.tb.add_scalar(f"episode/{key}", sum(float(r[key]) for r in rows) / len(rows), update)
 
     def rate(self, key: str) -> float:
         """Mean of `key` over the recent episodes (e.g. crashed -> crash rate), NaN before the first."""

@@ -1,31 +1,64 @@
-"""The AVs' networks and the paper's semi-sequential training scheme.
+"""The AVs' networks and how they learn from one batch: a shared network, or the paper's per-AV scheme.
 
-Contract (N AVs, K = `disseminate_every`):
-- Networks: `nets[k]` are the trained networks, one per AV (decentralised, default) or a single one shared
-  by all AVs (`shared_policy`); `owner(i)` is the index of AV i's network. Each trained network has a
-  frozen *acting copy* `acting[k]` and its own optimizer.
-- Learner: update u trains the network of AV `learner(u) = (u // K) % N` only, on that AV's samples
-  only, so the learner's data are on-policy. The learner acts with its live network `nets[owner(l)]`;
-  every other AV acts with its frozen acting copy.
-- Dissemination: after the K-th update of a learner's block, `nets[owner(l)]` is copied into
-  `acting[owner(l)]` (decentralised: AV l's own copy; shared: the copy all AVs act with) and the next AV
-  becomes the learner. Between disseminations no acting copy and no other AV's network changes.
+Contract (N AVs):
+- `shared_policy` (the default): one network `nets[0]`; every AV acts with it and every live AV's sample
+  trains it (the VelocityMap is ego-centred, so one network serves every AV).
+- Per AV (the paper's semi-sequential scheme, K = `disseminate_every`): `nets[i]` is AV i's network, with a
+  frozen *acting copy* `acting[i]`. Update u trains only the network of AV `learner(u) = (u // K) % N`, on
+  every sample of that AV in the batch (all workers, all steps: the data this scheme allows, since the
+  other AVs' networks stay frozen); the learner acts with its live network, the others with their frozen
+  copies. After the K-th update of a block the learner's network is copied into its acting copy
+  (dissemination) and the next AV becomes the learner.
+- `act(obs, agents, update)` samples actions for a flat batch of observations of the given AV indices, one
+  forward per network in play, and returns the log-probabilities and values (in the critic's scale) the
+  update needs; `value(...)` gives values alone (final observations of truncated agents).
+- `update(batch, tc, progress)` runs A2C (one gradient step over the batch) or PPO (`ppo_epochs` passes of
+  `ppo_minibatches` minibatches, clipped) for each network that trains this update, with advantages from
+  GAE over the batch, advantage normalisation and value normalisation as configured, the learning rate
+  and entropy weight of the schedules at `progress` in [0, 1]; returns loss statistics.
 """
 
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 
-from agents.a2c import OPTIMIZERS
-from agents.config import TrainConfig
+from agents.config import TrainConfig, schedule, use_bf16
+from agents.losses import OPTIMIZERS, ValueNorm, actor_critic_loss, gae, normalize
 from agents.model import ActorCritic
 
 
+@dataclass
+class Batch:
+    """One update's samples, time first, allocated once for T steps of W workers with N agents."""
+
+    obs: torch.Tensor  # (T, W, N, F, C, H, W) env dtype: the observation each action was chosen on
+    valid: torch.Tensor  # (T, W, N) bool: the agent acted at that step of an episode that was not lost
+    actions: torch.Tensor  # (T, W, N) int64
+    logp: torch.Tensor  # (T, W, N) log-probability of the action when it was chosen
+    values: torch.Tensor  # (T, W, N) the acting critic's value, in its own (normalised) scale
+    rewards: torch.Tensor  # (T, W, N)
+    terminated: torch.Tensor  # (T, W, N) bool
+    truncated: torch.Tensor  # (T, W, N) bool
+    final_values: torch.Tensor  # (T, W, N) value of the final observation of a truncated sample
+
+    @classmethod
+    def allocate(cls, steps: int, workers: int, agents: int, obs_shape: tuple[int, ...], dtype: torch.dtype) -> Batch:
+        twn = (steps, workers, agents)
+        return cls(torch.zeros((*twn, *obs_shape), dtype=dtype), torch.zeros(twn, dtype=torch.bool),
+                   torch.zeros(twn, dtype=torch.int64), torch.zeros(twn), torch.zeros(twn), torch.zeros(twn),
+                   torch.zeros(twn, dtype=torch.bool), torch.zeros(twn, dtype=torch.bool), torch.zeros(twn))
+
+    def clear(self) -> None:
+        for t in (self.valid, self.rewards, self.terminated, self.truncated, self.final_values):
+            t.zero_()
+
+
 class MultiAgentPolicy:
-    """Trained networks, acting copies and optimizers of N AVs, with the learner schedule."""
+    """Networks, acting copies, optimizers and value normalisers of N AVs (see the module doc)."""
 
     def __init__(self, n_agents: int, obs_shape: tuple[int, ...], n_actions: int, tc: TrainConfig,
                  device: torch.device | str = "cpu") -> None:
@@ -34,57 +67,150 @@ class MultiAgentPolicy:
         self.disseminate_every = tc.disseminate_every
         self.device = torch.device(device)
         n_nets = 1 if self.shared else n_agents
-        self.nets = [ActorCritic(obs_shape, n_actions, feature_dim=tc.feature_dim, head_hidden=tc.head_hidden)
-                     .to(self.device) for _ in range(n_nets)]
-        self.acting = [copy.deepcopy(net).requires_grad_(False) for net in self.nets]
+        bf16 = use_bf16(tc.precision, tc.device)
+        self.nets = [ActorCritic(obs_shape, n_actions, feature_dim=tc.feature_dim, head_hidden=tc.head_hidden,
+                                 bf16=bf16).to(self.device) for _ in range(n_nets)]
+        self.acting = [] if self.shared else [copy.deepcopy(net).requires_grad_(False) for net in self.nets]
         self.optimizers = [OPTIMIZERS[tc.optimizer](net.parameters(), tc) for net in self.nets]
+        self.value_norms = [ValueNorm().to(self.device) if tc.value_norm else None for _ in self.nets]
 
     def owner(self, agent: int) -> int:
-        """Index into `nets` / `acting` of AV `agent`'s network."""
+        """Index into `nets` of AV `agent`'s network."""
         return 0 if self.shared else agent
 
-    def learner(self, update: int) -> int:
-        """The AV whose network update number `update` (0-based) trains."""
-        return (update // self.disseminate_every) % self.n_agents
+    def learner(self, update: int) -> int | None:
+        """The AV whose network update number `update` (0-based) trains; None when all AVs learn (shared)."""
+        return None if self.shared else (update // self.disseminate_every) % self.n_agents
+
+    def trains(self, agent: int, update: int) -> bool:
+        """Whether AV `agent`'s samples of update `update` train a network."""
+        learner = self.learner(update)
+        return learner is None or agent == learner
 
     def acting_net(self, agent: int, update: int) -> ActorCritic:
         """The network AV `agent` acts with while update `update` is being collected."""
         k = self.owner(agent)
-        return self.nets[k] if agent == self.learner(update) else self.acting[k]
+        return self.nets[k] if self.trains(agent, update) else self.acting[k]
 
     def ends_block(self, update: int) -> bool:
-        """Whether update `update` is the last of its learner's block, i.e. dissemination follows it."""
-        return (update + 1) % self.disseminate_every == 0
+        """Whether dissemination follows update `update` (per AV: the last update of its learner's block)."""
+        return not self.shared and (update + 1) % self.disseminate_every == 0
 
     def disseminate(self, agent: int) -> None:
-        """Copy AV `agent`'s trained network into its acting copy (all AVs' copy when shared)."""
+        """Copy AV `agent`'s trained network into its acting copy."""
         k = self.owner(agent)
         self.acting[k].load_state_dict(self.nets[k].state_dict())
 
-    @torch.no_grad()
-    def act(self, obs: torch.Tensor, alive: torch.Tensor, update: int) -> torch.Tensor:
-        """Sampled actions (W, N) int64 for observations (W, N, F, C, H, W) of the AVs where alive (W, N).
-
-        AVs acting with the same network are batched into one forward; absent AVs get action 1 (idle).
-        """
-        actions = torch.ones(alive.shape, dtype=torch.int64)  # (W, N)
-        groups: dict[int, list[int]] = {}
+    def _groups(self, agents: torch.Tensor, update: int) -> list[tuple[ActorCritic, torch.Tensor]]:
+        nets: dict[int, tuple[ActorCritic, list[int]]] = {}
         for i in range(self.n_agents):
-            groups.setdefault(id(self.acting_net(i, update)), []).append(i)
-        for agents in groups.values():
-            net = self.acting_net(agents[0], update)
-            sel = torch.zeros(alive.shape, dtype=torch.bool)
-            sel[:, agents] = alive[:, agents]
+            net = self.acting_net(i, update)
+            nets.setdefault(id(net), (net, []))[1].append(i)
+        out = []
+        for net, members in nets.values():
+            sel = torch.isin(agents, torch.tensor(members))
             if sel.any():
-                logits, _ = net(obs[sel].to(self.device))  # (M, A)
-                actions[sel] = torch.distributions.Categorical(logits=logits).sample().cpu()
-        return actions
+                out.append((net, sel))
+        return out
+
+    @torch.no_grad()
+    def act(self, obs: torch.Tensor, agents: torch.Tensor, update: int
+            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Sampled actions, their log-probabilities and values (M,) for observations (M, F, C, H, W) of the AVs
+        `agents` (M,), one forward per network in play."""
+        m = len(agents)
+        actions, logp, values = torch.zeros(m, dtype=torch.int64), torch.zeros(m), torch.zeros(m)
+        for net, sel in self._groups(agents, update):
+            logits, v = net(obs[sel].to(self.device))
+            dist = torch.distributions.Categorical(logits=logits)
+            a = dist.sample()
+            actions[sel], logp[sel], values[sel] = a.cpu(), dist.log_prob(a).cpu(), v.cpu()
+        return actions, logp, values
+
+    @torch.no_grad()
+    def value(self, obs: torch.Tensor, agents: torch.Tensor, update: int) -> torch.Tensor:
+        """Values (M,) of observations (M, F, C, H, W) of the AVs `agents`, in the critic's scale."""
+        values = torch.zeros(len(agents))
+        for net, sel in self._groups(agents, update):
+            values[sel] = net.value(obs[sel].to(self.device)).cpu()
+        return values
+
+    # -- learning -----------------------------------------------------------------------------------------
+    def update(self, batch: Batch, tc: TrainConfig, update: int, progress: float) -> dict[str, float]:
+        """Train the networks of update number `update` on `batch` (module doc); returns statistics."""
+        lr, ent = schedule(tc.lr, tc.lr_final, progress), schedule(tc.entropy_coef, tc.entropy_final, progress)
+        stats: dict[str, float] = {"lr": lr, "entropy_coef": ent, "batch": 0.0}
+        learner = self.learner(update)
+        for k in range(len(self.nets)):
+            if learner is not None and k != self.owner(learner):
+                continue
+            agents = torch.zeros(batch.valid.shape[2], dtype=torch.bool)
+            agents[[i for i in range(self.n_agents) if self.owner(i) == k and self.trains(i, update)]] = True
+            sel = batch.valid & agents  # (T, W, N) samples that train network k
+            if sel.any():
+                stats.update(self._train_net(k, batch, sel, tc, lr, ent))
+        return stats
+
+    def _train_net(self, k: int, b: Batch, sel: torch.Tensor, tc: TrainConfig, lr: float,
+                   ent: float) -> dict[str, float]:
+        net, opt, vn = self.nets[k], self.optimizers[k], self.value_norms[k]
+        for group in opt.param_groups:
+            group["lr"] = lr
+        scale = (lambda v: vn.denormalize(v)) if vn is not None else (lambda v: v)
+        # GAE on every (worker, agent) column; samples that do not train are masked out afterwards.
+        steps = b.valid.shape[0]
+        values = scale(b.values).reshape(steps, -1)  # (T, B)
+        following = torch.cat([values[1:], torch.zeros_like(values[:1])])  # V(s_{t+1}) of the same agent
+        next_values = torch.where(b.truncated.reshape(steps, -1), scale(b.final_values).reshape(steps, -1),
+                                  following)
+        adv, ret = gae(b.rewards.reshape(steps, -1), values, next_values, b.terminated.reshape(steps, -1),
+                       b.truncated.reshape(steps, -1), tc.gamma, tc.gae_lambda, valid=b.valid.reshape(steps, -1))
+        flat = sel.reshape(steps, -1)
+        adv, ret = adv[flat], ret[flat]  # (M,)
+        if vn is not None:
+            vn.update(ret.to(self.device))
+            target = vn.normalize(ret.to(self.device))
+        else:
+            target = ret.to(self.device)
+        obs, actions, old_logp = b.obs[sel], b.actions[sel], b.logp[sel]
+        adv, old_logp, actions = adv.to(self.device), old_logp.to(self.device), actions.to(self.device)
+        m = len(adv)
+        if tc.algo == "ppo":
+            epochs, minibatches, clip = tc.ppo_epochs, min(tc.ppo_minibatches, m), tc.clip_range
+        else:
+            epochs, minibatches, clip = 1, 1, None
+        totals: dict[str, float] = {}
+        n_steps = 0
+        for _ in range(epochs):
+            order = torch.randperm(m) if minibatches > 1 else torch.arange(m)
+            for idx in order.chunk(minibatches):
+                dev_idx = idx.to(self.device)
+                logits, v = net(obs[idx].to(self.device))
+                a = adv[dev_idx]
+                terms = actor_critic_loss(logits, v, actions[dev_idx], normalize(a) if tc.normalize_advantage else a,
+                                          target[dev_idx], ent, tc.value_coef, old_logp[dev_idx], clip)
+                opt.zero_grad(set_to_none=True)
+                terms.loss.backward()
+                grad_norm = torch.nn.utils.clip_grad_norm_(net.parameters(), tc.max_grad_norm)
+                opt.step()
+                n_steps += 1
+                for name, value in (("loss", terms.loss), ("policy_loss", terms.policy), ("value_loss", terms.value),
+                                    ("entropy", terms.entropy), ("approx_kl", terms.approx_kl),
+                                    ("clip_fraction", terms.clip_fraction), ("grad_norm", grad_norm)):
+                    totals[name] = totals.get(name, 0.0) + float(value.detach())
+        with torch.no_grad():
+            predicted = scale(b.values[sel]).to(self.device)
+            ret_dev = ret.to(self.device)
+            explained = 1 - (ret_dev - predicted).var() / ret_dev.var() if m > 1 and ret_dev.var() > 0 else 0.0
+        return {**{k: v / n_steps for k, v in totals.items()}, "batch": float(m), "advantage": float(adv.mean()),
+                "return": float(ret.mean()), "explained_variance": float(explained)}
 
     def state_dict(self) -> dict[str, Any]:
         return {
             "nets": [net.state_dict() for net in self.nets],
             "acting": [net.state_dict() for net in self.acting],
             "optimizers": [opt.state_dict() for opt in self.optimizers],
+            "value_norms": [vn.state_dict() if vn is not None else {} for vn in self.value_norms],
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -93,9 +219,6 @@ class MultiAgentPolicy:
                 raise ValueError(f"{key}: expected {len(modules)} entries, got {len(state[key])}")
             for module, sd in zip(modules, state[key], strict=True):
                 module.load_state_dict(sd)
-
-
-def parameters_equal(a: torch.nn.Module, b: torch.nn.Module) -> bool:
-    """Whether two networks hold exactly the same parameters and buffers."""
-    sa, sb = a.state_dict(), b.state_dict()
-    return sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+        for vn, sd in zip(self.value_norms, state.get("value_norms", []), strict=False):
+            if vn is not None and sd:
+                vn.load_state_dict(sd)

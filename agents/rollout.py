@@ -1,16 +1,21 @@
-"""Rollout workers: W processes, one PettingZoo ParallelEnv each, stepped in lock-step by the learner.
+"""Rollout workers: W processes, one PettingZoo ParallelEnv each; observations travel through shared memory.
 
 Contract:
-- `WorkerPool(env_factory, workers, seed)` starts W processes (forkserver, else spawn) that each call the
-  picklable `env_factory()` once (libsumo allows one simulation per process) and report the env's spec.
-- `reset()` returns observations (W, N, F, C, H, W) and an alive mask (W, N); `step(actions (W, N))`
-  returns one `StepResult` per worker. Agent i is `possible_agents[i]`. A worker whose episode ended
-  resets by itself: its `next_obs` is then the new episode's first observation and `episode` holds the
-  finished episode's info. Observations are copied out of the env's read-only views.
-- A worker whose env raises (or whose process dies) is replaced by a fresh process and reset; its
-  `StepResult.lost` is True: the running episode is lost, its remaining steps never reach the learner and
-  it is not counted as an episode (steps of it collected in earlier updates were already trained on).
-  More than `max_restarts` replacements over the pool's life raise `cosim.errors.SimulationError`.
+- `WorkerPool(env_factory, workers, max_restarts, timeout)` starts W processes (forkserver, else spawn) that
+  each call the picklable `env_factory()` once (libsumo allows one simulation per process) and report the
+  env's spec. The pool then maps two shared arrays (files in /dev/shm, removed at `close`), both
+  (W, N, F, C, H, W) of the env's dtype: `obs[w]`, where worker w writes the observation of every live agent
+  after a reset or step (zeros for the others), and `final[w]`, where it writes the final observation of each
+  agent truncated in that step. Only small results cross the pipes; nothing is pickled per observation.
+- Commands go to a subset of workers and their results are collected later, so that the learner can act
+  for some workers while the others step: `send_reset(ws, seeds)`, `send_step(ws, actions)` (actions
+  (len(ws), N); agent i is `possible_agents[i]`), then `recv(ws)` -> one `StepResult` per worker. A worker's
+  shared slots stay valid until its next command. Episodes do not reset by themselves: the step that ends one
+  carries the env's `episode` summary and the caller decides what comes next.
+- A worker whose env raises, whose process dies or that stays silent for `timeout` seconds is killed and
+  replaced by a fresh process; its result is `lost` (no agent alive): the running episode is lost and must
+  not be counted. More than `max_restarts` replacements over the pool's life raise `SimulationError`.
+  Bad input (`ConfigError`, `NetError`) fails the same way in every process and is raised at once.
 This module imports neither torch nor SUMO, so workers start fast; the env factory imports what it needs.
 """
 
@@ -18,16 +23,19 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import os
+import shutil
 import signal
+import tempfile
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from cosim.config import EVAL_SEED_START
 from cosim.errors import ConfigError, NetError, SimulationError
 
 log = logging.getLogger(__name__)
@@ -41,63 +49,61 @@ class EnvSpec:
     obs_shape: tuple[int, ...]  # (F, C, H, W)
     obs_dtype: str  # numpy dtype name: float32 | float16 | uint8
     n_actions: int
+    max_steps: int  # an episode's most decision steps (the env's `max_steps`, or PettingZoo's `max_cycles`)
 
 
 @dataclass
 class StepResult:
-    next_obs: np.ndarray  # (N, F, C, H, W) observation for the next decision (zeros where not alive)
-    alive: np.ndarray  # (N,) bool: agent acts at the next decision
+    alive: np.ndarray  # (N,) bool: the agent acts at the next decision (its observation is in obs[w])
     reward: np.ndarray  # (N,) float32 reward of this step (0 for agents that did not act)
     terminated: np.ndarray  # (N,) bool: crashed / left; no bootstrap
-    truncated: np.ndarray  # (N,) bool: time limit; bootstrap from final_obs
-    final_obs: dict[int, np.ndarray] = field(default_factory=dict)  # agent index -> (F, C, H, W) if truncated
+    truncated: np.ndarray  # (N,) bool: cut (time limit, merge failed, another's crash): bootstrap from final[w]
     reward_terms: dict[str, np.ndarray] = field(default_factory=dict)  # term name -> (N,) float32
-    episode: dict[str, Any] | None = None  # the finished episode's info when this step ended it
-    lost: bool = False  # the env failed: the worker was restarted, the running episode is lost
-
-
-# A worker's episodes count up from its first seed: leave room for a million of them below evaluation's seeds.
-_FIRST_SEEDS = EVAL_SEED_START - 1_000_000
-
-
-def _seed(seed: int, worker: int, generation: int) -> int:
-    """First-episode seed per worker and per (re)start, so a crashing episode is not replayed; always below
-    the evaluation seeds."""
-    return int(np.random.SeedSequence([seed, worker, generation]).generate_state(1)[0]) % _FIRST_SEEDS
+    episode: dict[str, Any] | None = None  # the env's summary when this step ended the episode
+    lost: bool = False  # the env failed: the worker was replaced, the running episode is lost
 
 
 class _EnvRunner:
-    """Worker-side wrapper: dict-keyed PettingZoo steps <-> index-keyed arrays, with auto-reset."""
+    """Worker side: dict-keyed PettingZoo steps <-> index-keyed arrays written into the shared slots."""
 
     def __init__(self, env: Any) -> None:
         self.env = env
         self.agents = tuple(env.possible_agents)
         self.index = {a: i for i, a in enumerate(self.agents)}
         space = env.observation_space(self.agents[0])
+        max_steps = getattr(env, "max_steps", getattr(env, "max_cycles", None))
+        if max_steps is None:
+            raise ConfigError(f"env {type(env).__name__}: needs a `max_steps` (or `max_cycles`) attribute, the most "
+                              "decision steps of an episode, to size the rollout storage")
         self.spec = EnvSpec(self.agents, tuple(space.shape), np.dtype(space.dtype).name,
-                            int(env.action_space(self.agents[0]).n))
+                            int(env.action_space(self.agents[0]).n), int(max_steps))
+        self.obs: np.ndarray | None = None  # (N, F, C, H, W) this worker's slot of the shared arrays
+        self.final: np.ndarray | None = None
         self.length = 0
 
-    def _pack(self, obs: dict[str, np.ndarray], alive: list[str]) -> tuple[np.ndarray, np.ndarray]:
-        out = np.zeros((len(self.agents), *self.spec.obs_shape), dtype=self.spec.obs_dtype)  # (N, F, C, H, W)
+    def _write(self, obs: dict[str, np.ndarray], alive: Sequence[str]) -> np.ndarray:
+        assert self.obs is not None
         mask = np.zeros(len(self.agents), dtype=bool)
         for a in alive:
-            out[self.index[a]] = obs[a]
+            self.obs[self.index[a]] = obs[a]
             mask[self.index[a]] = True
-        return out, mask
+        self.obs[~mask] = 0
+        return mask
 
-    def reset(self, seed: int | None) -> tuple[np.ndarray, np.ndarray]:
+    def reset(self, seed: int | None) -> StepResult:
         obs, _ = self.env.reset(seed=seed)
         self.length = 0
-        return self._pack(obs, [a for a in self.env.agents if a in obs])
+        n = len(self.agents)
+        alive = self._write(obs, [a for a in self.env.agents if a in obs])
+        return StepResult(alive, np.zeros(n, np.float32), np.zeros(n, bool), np.zeros(n, bool))
 
     def step(self, actions: np.ndarray) -> StepResult:
+        assert self.final is not None
         acting = list(self.env.agents)
         obs, rew, term, trunc, infos = self.env.step({a: int(actions[self.index[a]]) for a in acting})
         self.length += 1
         n = len(self.agents)
         reward, terminated, truncated = np.zeros(n, np.float32), np.zeros(n, bool), np.zeros(n, bool)
-        final_obs: dict[int, np.ndarray] = {}
         terms: dict[str, np.ndarray] = {}
         episode = None
         for a in acting:
@@ -106,24 +112,26 @@ class _EnvRunner:
             terminated[i] = bool(term.get(a, False))
             truncated[i] = bool(trunc.get(a, False)) and not terminated[i]  # a crash at the limit is a crash
             if truncated[i]:
-                final_obs[i] = np.array(obs[a])  # copy: the env's view is only valid until the next step
+                self.final[i] = obs[a]
             info = infos.get(a, {})
             for name, value in info.get("reward_terms", {}).items():
                 terms.setdefault(name, np.zeros(n, np.float32))[i] = value
             episode = info.get("episode", episode)
-        alive = [a for a in acting if a in self.env.agents and a in obs and not (term.get(a) or trunc.get(a))]
-        if alive:
-            next_obs, mask = self._pack(obs, alive)
+        live = [a for a in acting if a in self.env.agents and a in obs and not (term.get(a) or trunc.get(a))]
+        alive = self._write(obs, live)
+        if live:
             episode = None  # only reported when the episode is over
-        else:  # episode over: report it and start the next one (seeded by the env's own sequence)
-            episode = dict(episode) if episode is not None else {"length": self.length}
-            next_obs, mask = self.reset(None)
-        return StepResult(next_obs, mask, reward, terminated, truncated, final_obs, terms, episode)
+        elif episode is None:
+            episode = {"length": self.length}
+        return StepResult(alive, reward, terminated, truncated, terms, episode)
 
 
-def _worker_main(conn: Connection, env_factory: EnvFactory) -> None:
-    """Process entry: build the env, then serve ("reset", seed) / ("step", actions) / ("close", None)."""
+def _worker_main(conn: Connection, env_factory: EnvFactory, tmp_root: str) -> None:
+    """Process entry: build the env, then serve attach / reset / step / close commands."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the learner's to handle
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    # The env's temporary files go into the pool's folder, which the pool removes even if this process is killed.
+    tempfile.tempdir = tmp_root
     env = None
     try:
         env = env_factory()
@@ -133,12 +141,16 @@ def _worker_main(conn: Connection, env_factory: EnvFactory) -> None:
             cmd, arg = conn.recv()
             if cmd == "close":
                 break
-            conn.send(("ok", runner.reset(arg) if cmd == "reset" else runner.step(arg)))
+            if cmd == "attach":
+                runner.obs, runner.final = (_map(path, shape, dtype, "r+")[index] for path, shape, dtype, index in arg)
+                conn.send(("ok", None))
+            else:
+                conn.send(("ok", runner.reset(arg) if cmd == "reset" else runner.step(arg)))
     except EOFError:  # the learner went away
         pass
     except (ConfigError, NetError) as exc:  # bad input fails the same way in every restart: stop the run
         conn.send(("fatal", exc))
-    except BaseException as exc:  # report any env failure; the learner restarts this worker
+    except BaseException as exc:  # report any env failure; the learner replaces this worker
         try:
             conn.send(("error", f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
         except (BrokenPipeError, OSError):
@@ -152,14 +164,18 @@ def _worker_main(conn: Connection, env_factory: EnvFactory) -> None:
         conn.close()
 
 
+def _map(path: str, shape: tuple[int, ...], dtype: str, mode: str) -> np.ndarray:
+    return np.memmap(path, dtype=dtype, mode=mode, shape=shape)
+
+
 class WorkerFailure(Exception):
-    """A worker's env raised or its process died (internal: the pool restarts it)."""
+    """A worker's env raised, its process died, or it stayed silent (internal: the pool replaces it)."""
 
 
 class _Worker:
-    def __init__(self, ctx: Any, env_factory: EnvFactory, name: str) -> None:
+    def __init__(self, ctx: Any, env_factory: EnvFactory, name: str, tmp_root: str) -> None:
         self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_worker_main, args=(child, env_factory), name=name, daemon=True)
+        self.proc = ctx.Process(target=_worker_main, args=(child, env_factory, tmp_root), name=name, daemon=True)
         self.proc.start()
         child.close()
 
@@ -169,8 +185,10 @@ class _Worker:
         except (BrokenPipeError, OSError) as exc:
             raise WorkerFailure(f"{self.proc.name}: pipe closed ({exc})") from None
 
-    def recv(self) -> Any:
+    def recv(self, timeout: float) -> Any:
         try:
+            if not self.conn.poll(timeout):
+                raise WorkerFailure(f"{self.proc.name}: no answer in {timeout:g} s (train.step_timeout)")
             status, payload = self.conn.recv()
         except (EOFError, OSError):
             raise WorkerFailure(f"{self.proc.name}: process died (exit code {self.proc.exitcode})") from None
@@ -191,110 +209,123 @@ class _Worker:
             self.proc.join(timeout)
         self.conn.close()
 
+    def kill(self) -> None:
+        if self.proc.is_alive():
+            self.proc.kill()  # SIGKILL also ends a stopped (SIGSTOP) process
+        self.proc.join(5.0)
+        self.conn.close()
+
 
 class WorkerPool:
-    """W env worker processes stepped synchronously; failed workers are replaced (see module doc)."""
+    """W env worker processes with shared observation slots; failed workers are replaced (module doc)."""
 
-    def __init__(self, env_factory: EnvFactory, workers: int, seed: int = 0, max_restarts: int = 100,
+    def __init__(self, env_factory: EnvFactory, workers: int, max_restarts: int = 100, timeout: float = 60.0,
                  start_method: str | None = None) -> None:
         method = start_method or ("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
         self.ctx = mp.get_context(method)
         self.env_factory = env_factory
-        self.seed = seed
         self.max_restarts = max_restarts
+        self.timeout = timeout
         self.restarts = 0
-        self.generation = [0] * workers
         self.workers: list[_Worker] = []
-        specs = []
+        self._files: list[str] = []
+        self._tmp_root = tempfile.mkdtemp(prefix="cosim_pool_")
         try:
             for w in range(workers):
-                self.workers.append(_Worker(self.ctx, env_factory, f"rollout-{w}"))
-            for w in range(workers):  # the env factories run in parallel
-                specs.append(self._recv_spec(w))
+                self.workers.append(self._start(w))
+            specs = [self._recv_spec(w) for w in range(workers)]  # the env factories run in parallel
+            if any(s != specs[0] for s in specs):
+                raise SimulationError(f"rollout workers built envs with different specs: {set(specs)}")
+            self.spec: EnvSpec = specs[0]
+            shape = (workers, len(self.spec.agents), *self.spec.obs_shape)
+            self.obs = self._shared(shape)  # (W, N, F, C, H, W)
+            self.final = self._shared(shape)
+            for w in range(workers):
+                self._attach(w)
         except BaseException:
             self.close()
             raise
-        if any(s != specs[0] for s in specs):
-            self.close()
-            raise SimulationError(f"rollout workers built envs with different specs: {set(specs)}")
-        self.spec: EnvSpec = specs[0]
 
     def __len__(self) -> int:
         return len(self.workers)
 
+    def _start(self, w: int) -> _Worker:
+        return _Worker(self.ctx, self.env_factory, f"rollout-{w}", self._tmp_root)
+
+    def _shared(self, shape: tuple[int, ...]) -> np.ndarray:
+        folder = "/dev/shm" if os.path.isdir("/dev/shm") else None  # RAM-backed where there is one
+        fd, path = tempfile.mkstemp(prefix="cosim_obs_", dir=folder)
+        os.close(fd)
+        self._files.append(path)
+        return _map(path, shape, self.spec.obs_dtype, "w+")
+
+    def _attach(self, w: int) -> None:
+        arrays = [(path, a.shape, self.spec.obs_dtype, w) for path, a in zip(self._files, (self.obs, self.final),
+                                                                          strict=True)]
+        self.workers[w].send("attach", arrays)
+        self.workers[w].recv(self.timeout)
+
     def _recv_spec(self, w: int) -> EnvSpec:
         while True:
             try:
-                return self.workers[w].recv()
+                return self.workers[w].recv(self.timeout)
             except WorkerFailure as exc:
                 self._replace(w, exc)
 
     def _replace(self, w: int, reason: Exception) -> None:
-        self.restarts += 1
-        log.warning("rollout worker %d failed (%s); restarting it (restart %d of at most %d)", w,
-                    str(reason).splitlines()[0], self.restarts, self.max_restarts)
-        if self.restarts > self.max_restarts:
-            raise SimulationError(f"rollout worker {w} failed {self.restarts} times in total (train.max_restarts "
-                                  f"= {self.max_restarts}); last failure: {reason}")
-        self.workers[w].close(timeout=1.0)
-        self.generation[w] += 1
-        self.workers[w] = _Worker(self.ctx, self.env_factory, f"rollout-{w}")
-
-    def _reset_one(self, w: int) -> tuple[np.ndarray, np.ndarray]:
-        """Reset worker w, replacing it until a reset succeeds."""
+        """Kill worker w and start another in its place (attached to the shared slots once they exist)."""
         while True:
+            self.restarts += 1
+            if self.restarts > self.max_restarts:
+                raise SimulationError(f"rollout worker {w} failed; {self.restarts} failures in total exceed "
+                                      f"train.max_restarts = {self.max_restarts}; last failure: {reason}")
+            log.warning("rollout worker %d failed (%s); replacing it (restart %d of at most %d)", w,
+                        str(reason).splitlines()[0], self.restarts, self.max_restarts)
+            self.workers[w].kill()
+            self.workers[w] = self._start(w)
+            if not self._files:  # starting up: the caller receives the new worker's spec
+                return
             try:
-                self.workers[w].send("reset", _seed(self.seed, w, self.generation[w]))
-                return self.workers[w].recv()
+                spec = self.workers[w].recv(self.timeout)
+                if spec != self.spec:
+                    raise SimulationError(f"rollout worker {w} was restarted with another env spec: {spec}")
+                self._attach(w)
+                return
             except WorkerFailure as exc:
-                self._replace(w, exc)
-                self._recv_spec(w)
+                reason = exc
 
-    def reset(self) -> tuple[np.ndarray, np.ndarray]:
-        """Observations (W, N, F, C, H, W) and alive mask (W, N) of fresh episodes in every worker."""
-        for w, worker in enumerate(self.workers):
+    def _send(self, ws: Sequence[int], cmd: str, args: Sequence[Any]) -> None:
+        for w, arg in zip(ws, args, strict=True):
             try:
-                worker.send("reset", _seed(self.seed, w, self.generation[w]))
+                self.workers[w].send(cmd, arg)
             except WorkerFailure:
-                pass  # picked up below
-        results = []
-        for w, worker in enumerate(self.workers):
+                pass  # found at recv
+
+    def send_reset(self, ws: Sequence[int], seeds: Sequence[int | None]) -> None:
+        self._send(ws, "reset", seeds)
+
+    def send_step(self, ws: Sequence[int], actions: np.ndarray) -> None:
+        self._send(ws, "step", list(np.asarray(actions, dtype=np.int64)))
+
+    def recv(self, ws: Sequence[int]) -> list[StepResult]:
+        """Results of the last command sent to each worker of `ws`; a failed worker is replaced and `lost`."""
+        n = len(self.spec.agents)
+        out = []
+        for w in ws:
             try:
-                results.append(worker.recv())
+                out.append(self.workers[w].recv(self.timeout))
             except WorkerFailure as exc:
                 self._replace(w, exc)
-                self._recv_spec(w)
-                results.append(self._reset_one(w))
-        return np.stack([r[0] for r in results]), np.stack([r[1] for r in results])
-
-    def step(self, actions: np.ndarray) -> list[StepResult]:
-        """Step every worker with its row of `actions` (W, N); one result per worker (see module doc)."""
-        failed: dict[int, Exception] = {}
-        for w, worker in enumerate(self.workers):
-            try:
-                worker.send("step", actions[w])
-            except WorkerFailure as exc:
-                failed[w] = exc
-        results: list[StepResult | None] = []
-        for w, worker in enumerate(self.workers):
-            if w in failed:
-                results.append(None)
-                continue
-            try:
-                results.append(worker.recv())
-            except WorkerFailure as exc:
-                failed[w] = exc
-                results.append(None)
-        for w, exc in failed.items():
-            self._replace(w, exc)
-            self._recv_spec(w)
-            obs, alive = self._reset_one(w)
-            n = len(self.spec.agents)
-            results[w] = StepResult(obs, alive, np.zeros(n, np.float32), np.zeros(n, bool), np.zeros(n, bool),
-                                    lost=True)
-        return results  # type: ignore[return-value]
+                self.obs[w] = 0
+                out.append(StepResult(np.zeros(n, bool), np.zeros(n, np.float32), np.zeros(n, bool),
+                                      np.zeros(n, bool), lost=True))
+        return out
 
     def close(self) -> None:
         for worker in self.workers:
             worker.close()
         self.workers = []
+        for path in self._files:
+            Path(path).unlink(missing_ok=True)
+        self._files = []
+        shutil.rmtree(self._tmp_root, ignore_errors=True)

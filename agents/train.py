@@ -1,16 +1,17 @@
-"""Multi-agent A2C training loop (paper Section 4) over W rollout workers; the `cosim train` entry point.
+"""Multi-agent actor-critic training (paper Section 4; A2C or PPO) over W rollout workers: `cosim train`.
 
-Contract: `train(cfg, out_dir, ...)` trains the AVs of `cfg` until `episodes` episodes have finished in
-total, writing into `out_dir`: `config.yaml` (the resolved config), `checkpoint.pt` (every
-`train.checkpoint_every` updates, at the end, and on Ctrl-C), `updates.csv`, `episodes.csv` and TensorBoard
-files under `tb/`. `resume=True` continues the run in `out_dir` from its checkpoint (same parameters,
-optimizer state, RNG states and counters). It returns a `TrainResult`. `add_arguments` / `run`
-are the argparse pair behind `cosim train`.
+Contract: `train(cfg, out_dir, ...)` trains the AVs of `cfg` until `train.episodes` episodes have finished in
+total or the `train.budget_min` wall-clock budget is spent (both over the whole run, resumes included),
+writing into `out_dir`: `config.yaml` (the resolved config), `checkpoint.pt` (every `train.checkpoint_every`
+updates, at the end, and on Ctrl-C or SIGTERM), `updates.csv`, `episodes.csv` and TensorBoard files under
+`tb/`. `resume=True` continues the run in `out_dir` from its checkpoint: same parameters, optimizer and
+value-normaliser state, RNG states and counters; episode seeds follow from (seed, update, worker), so a
+resumed run continues the same sequence as an uninterrupted one. It returns a `TrainResult`.
+`add_arguments` / `run` are the argparse pair behind `cosim train`.
 
-One update: every worker steps its env `rollout_steps` times with all AVs acting (the learner AV with
-its live network, the others with frozen copies, see agents.multiagent); then the learner's network
-trains on the learner's valid samples with GAE advantages. Samples of absent agents and the rollout's
-steps of an episode lost to a worker failure are masked out, never padded into the loss.
+One update: every worker plays one whole episode (`agents.collect`), then the network(s) learn from every
+sample the scheme allows (`agents.multiagent`). Samples of absent agents and episodes lost to a worker
+failure are masked out, never padded into the loss.
 """
 
 from __future__ import annotations
@@ -20,8 +21,8 @@ import dataclasses
 import functools
 import logging
 import random
+import sys
 import time
-from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,9 +32,9 @@ import torch
 import yaml
 from tqdm import tqdm
 
-from agents.a2c import a2c_loss, gae
 from agents.checkpoint import (
     CHECKPOINT_NAME,
+    POLICY_NAME,
     CheckpointError,
     check_spec,
     read_checkpoint,
@@ -41,16 +42,19 @@ from agents.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
+from agents.collect import Collected, collect
 from agents.config import TrainConfig, check_device, train_config
 from agents.logs import RunLogger
-from agents.multiagent import MultiAgentPolicy
+from agents.multiagent import Batch, MultiAgentPolicy
 from agents.rollout import EnvFactory, WorkerPool
-from cosim.cli import add_config_arguments
-from cosim.config import Config, load_config
+from cosim.cli import Heartbeat, add_config_arguments
+from cosim.config import EVAL_SEED_START, Config, load_config
 from cosim.errors import ConfigError
-from cosim.files import atomic_write_text
+from cosim.files import atomic_write_text, stale_temporaries
 
 log = logging.getLogger(__name__)
+
+COUNTERS = ("episodes", "updates", "samples", "restarts", "lost_episodes")
 
 
 @dataclass(frozen=True)
@@ -62,76 +66,56 @@ class TrainResult:
     samples: int  # valid agent-samples collected, over the whole run
     restarts: int  # rollout worker restarts, over the whole run
     lost_episodes: int  # episodes dropped because their worker failed
-    interrupted: bool  # stopped by Ctrl-C (a checkpoint was written)
+    interrupted: bool  # stopped by Ctrl-C or SIGTERM (a checkpoint was written)
     recent_return: float  # mean per-agent episode return over the last 100 episodes
     wall_s: float  # [s] of this call
     rollout_s: float  # [s] of this call spent collecting (env steps + acting)
     update_s: float  # [s] of this call spent in gradient updates
     new_samples: int  # agent-samples collected by this call
+    train_s: float  # [s] of training over the whole run (what `budget_min` limits)
 
 
-@dataclass
-class Rollout:
-    """One update's storage, allocated once; time first. Row T of obs/alive is the bootstrap state."""
-
-    obs: torch.Tensor  # (T+1, W, N, F, C, H, W) env dtype
-    alive: torch.Tensor  # (T+1, W, N) bool: the agent acts at that step
-    actions: torch.Tensor  # (T, W, N) int64
-    rewards: torch.Tensor  # (T, W, N) float32
-    terminated: torch.Tensor  # (T, W, N) bool
-    truncated: torch.Tensor  # (T, W, N) bool
-    valid: torch.Tensor  # (T, W, N) bool: alive and its episode not lost
-    final_obs: dict[tuple[int, int, int], torch.Tensor]  # (t, w, i) -> (F, C, H, W) of truncated samples
-
-    @classmethod
-    def allocate(cls, steps: int, workers: int, agents: int, obs_shape: tuple[int, ...], dtype: torch.dtype
-                 ) -> Rollout:
-        twn = (steps, workers, agents)
-        return cls(torch.zeros((steps + 1, workers, agents, *obs_shape), dtype=dtype),
-                   torch.zeros((steps + 1, workers, agents), dtype=torch.bool),
-                   torch.zeros(twn, dtype=torch.int64), torch.zeros(twn), torch.zeros(twn, dtype=torch.bool),
-                   torch.zeros(twn, dtype=torch.bool), torch.zeros(twn, dtype=torch.bool), {})
+def episode_seed(seed: int, update: int, worker: int) -> int:
+    """The training episode of `worker` in update `update`: reproducible, and below the evaluation seeds."""
+    return int(np.random.SeedSequence([seed, update, worker]).generate_state(1)[0]) % EVAL_SEED_START
 
 
-def learner_update(policy: MultiAgentPolicy, learner: int, ro: Rollout, tc: TrainConfig) -> dict[str, float]:
-    """One gradient step of AV `learner`'s network on that AV's valid samples; returns loss statistics."""
-    k = policy.owner(learner)
-    net, opt, dev = policy.nets[k], policy.optimizers[k], policy.device
-    sel = ro.valid[:, :, learner]  # (T, W) samples that train this update
-    if not sel.any():
-        return {"batch": 0.0}
-    obs = ro.obs[:, :, learner]  # (T+1, W, F, C, H, W)
-    logits, values = net(obs[:-1][sel].to(dev))  # (M, A), (M,)
-    with torch.no_grad():  # V(s_{t+1}) of each sample: next row, bootstrap row T, or a truncated final obs
-        all_values = torch.zeros(sel.shape[0] + 1, sel.shape[1], device=dev)  # (T+1, W)
-        all_values[:-1][sel] = values.detach()
-        boot = ro.alive[-1, :, learner]  # (W,)
-        if boot.any():
-            all_values[-1][boot.to(dev)] = net.value(obs[-1][boot].to(dev))
-        next_values = all_values[1:].clone()  # (T, W)
-        final = [(t, w) for (t, w, i) in ro.final_obs if i == learner]
-        if final:
-            fin = torch.stack([ro.final_obs[(t, w, learner)] for t, w in final]).to(dev)
-            next_values[tuple(torch.tensor(final, device=dev).T)] = net.value(fin)
-    adv, ret = gae(ro.rewards[:, :, learner].to(dev), all_values[:-1], next_values,
-                   ro.terminated[:, :, learner].to(dev), ro.truncated[:, :, learner].to(dev),
-                   tc.gamma, tc.gae_lambda, valid=sel.to(dev))  # (T, W) each
-    sel = sel.to(dev)
-    terms = a2c_loss(logits, values, ro.actions[:, :, learner].to(dev)[sel], adv[sel], ret[sel],
-                     tc.entropy_coef, tc.value_coef, tc.normalize_advantage)
-    opt.zero_grad(set_to_none=True)
-    terms.loss.backward()
-    grad_norm = torch.nn.utils.clip_grad_norm_(net.parameters(), tc.max_grad_norm)
-    opt.step()
-    return {"batch": float(sel.sum()), "loss": terms.loss.item(), "policy_loss": terms.policy.item(),
-            "value_loss": terms.value.item(), "entropy": terms.entropy.item(), "grad_norm": grad_norm.item(),
-            "advantage": adv[sel].mean().item(), "value": values.mean().item()}
+# Train keys a resume may change without --allow-config-change: how long and how a run is run, not what it learns.
+RESUMABLE = frozenset({"train.episodes", "train.budget_min", "train.checkpoint_every", "train.log_every",
+                       "train.log_every_s", "train.step_timeout", "train.max_restarts", "train.torch_threads",
+                       "train.device"})
 
 
-def _seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
+def run_config(cfg: Config, tc: TrainConfig) -> dict[str, Any]:
+    """What a run's config.yaml holds: the resolved config with the train section as trained."""
+    return {**cfg.to_dict(), "train": dataclasses.asdict(tc)}
+
+
+def _flat(data: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(data, dict):
+        out: dict[str, Any] = {}
+        for k, v in data.items():
+            out.update(_flat(v, f"{prefix}{k}."))
+        return out
+    return {prefix[:-1]: data}
+
+
+def config_changes(saved: Path, new: dict[str, Any]) -> dict[str, tuple[Any, Any]]:
+    """Dotted key -> (the run's value, the new one) for every key that differs, RESUMABLE keys left out."""
+    if not saved.is_file():
+        raise CheckpointError(f"--resume: {saved} not found; the run folder is incomplete")
+    old = _flat(yaml.safe_load(saved.read_text()) or {})
+    now = _flat(yaml.safe_load(yaml.safe_dump(new)))  # the same YAML types on both sides
+    return {k: (old.get(k), now.get(k)) for k in sorted(set(old) | set(now))
+            if old.get(k) != now.get(k) and k not in RESUMABLE}
+
+
+def _record_changes(out_dir: Path, changes: dict[str, tuple[Any, Any]], update: int) -> None:
+    path = out_dir / "config_changes.yaml"
+    history = yaml.safe_load(path.read_text()) if path.is_file() else []
+    history.append({"at_update": update, "time": time.strftime("%Y-%m-%d %H:%M:%S"),
+                    "changes": {k: {"from": old, "to": new} for k, (old, new) in changes.items()}})
+    atomic_write_text(path, yaml.safe_dump(history, sort_keys=False))
 
 
 def _default_env_factory(cfg: Config) -> EnvFactory:
@@ -141,151 +125,202 @@ def _default_env_factory(cfg: Config) -> EnvFactory:
 
 
 def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: int | None = None,
-          resume: bool = False, device: str | None = None, env_factory: EnvFactory | None = None,
-          progress: bool | None = None) -> TrainResult:
+          budget_min: float | None = None, resume: bool = False, device: str | None = None,
+          env_factory: EnvFactory | None = None, progress: bool | None = None,
+          allow_config_change: bool = False) -> TrainResult:
     """Train (or, with `resume`, continue training) the AVs of `cfg` into `out_dir` (see module doc)."""
-    tc = train_config(cfg)
-    tc = dataclasses.replace(tc, workers=workers or tc.workers, episodes=episodes or tc.episodes,
-                             device=device or tc.device)
-    check_device(tc.device, "--device")
-    if tc.device.startswith("cuda") and not torch.cuda.is_available():
-        raise ConfigError(f"--device {tc.device}: CUDA is not available on this machine")
-    if tc.torch_threads:
-        torch.set_num_threads(tc.torch_threads)
-    out_dir = Path(out_dir)
-    ckpt_path = out_dir / CHECKPOINT_NAME
-    if not resume and ckpt_path.exists():
-        raise CheckpointError(f"checkpoint {ckpt_path}: exists already; pass --resume to continue that run or "
-                              "choose another --out")
-    payload = read_checkpoint(ckpt_path) if resume else None
-    counters = {"episodes": 0, "updates": 0, "samples": 0, "restarts": 0, "lost_episodes": 0}
-    if payload is not None:
-        counters.update({k: int(v) for k, v in payload["counters"].items() if k in counters})
-    out_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out_dir / "config.yaml", yaml.safe_dump({**cfg.to_dict(), "train": dataclasses.asdict(tc)},
-                                                              sort_keys=False))
-    _seed_everything(tc.seed)
-    pool = WorkerPool(env_factory or _default_env_factory(cfg), tc.workers, seed=tc.seed + counters["updates"],
-                      max_restarts=tc.max_restarts)
-    spec = pool.spec
-    n_agents, obs_shape = len(spec.agents), spec.obs_shape
-    spec_dict = {"agents": list(spec.agents), "obs_shape": list(obs_shape), "obs_dtype": spec.obs_dtype,
-                 "n_actions": spec.n_actions, "shared_policy": tc.shared_policy, "feature_dim": tc.feature_dim,
-                 "head_hidden": tc.head_hidden}
+    run = _Run.open(cfg, Path(out_dir), workers, episodes, budget_min, resume, device, env_factory,
+                    allow_config_change, progress)
     try:
-        policy = MultiAgentPolicy(n_agents, obs_shape, spec.n_actions, tc, tc.device)
-        if payload is not None:
-            check_spec(payload, spec_dict, ckpt_path)
-            policy.load_state_dict(payload["policy"])
-            set_rng_state(payload["rng"])
-            log.info("resumed %s at update %d, episode %d", ckpt_path, counters["updates"], counters["episodes"])
-    except BaseException:
-        pool.close()
-        raise
-    logger = RunLogger(out_dir)
-
-    def checkpoint() -> None:
-        save_checkpoint(ckpt_path, {"spec": spec_dict, "policy": policy.state_dict(), "counters": dict(counters),
-                                    "rng": rng_state(), "train": dataclasses.asdict(tc), "config": cfg.to_dict(),
-                                    "phis": list(cfg.phis())})
-
-    # Storage, allocated once. T decision steps x W workers x N agents.
-    T, W, N = tc.rollout_steps, tc.workers, n_agents
-    ro = Rollout.allocate(T, W, N, obs_shape, getattr(torch, spec.obs_dtype))
-    ep_return = np.zeros((W, N))  # running per-agent return of each worker's episode
-    ep_terms: list[dict[str, np.ndarray]] = [defaultdict(lambda: np.zeros(N)) for _ in range(W)]
-    timing = {"rollout": 0.0, "update": 0.0}
-    start, start_samples, interrupted = time.perf_counter(), counters["samples"], False
-    restarts_before = counters["restarts"]
-    bar = tqdm(total=tc.episodes, initial=min(counters["episodes"], tc.episodes), unit="ep", dynamic_ncols=True,
-               disable=(not progress) if progress is not None else None, desc="train")
-    try:
-        obs, alive = pool.reset()  # (W, N, F, C, H, W), (W, N)
-        while counters["episodes"] < tc.episodes:
-            update = counters["updates"]
-            learner = policy.learner(update)
-            # --- rollout: T synchronous steps of every worker ---
-            t0 = time.perf_counter()
-            ro.final_obs.clear()
-            ep_start = [0] * W  # the step where each worker's running episode entered this rollout
-            for t in range(T):
-                ro.obs[t] = torch.from_numpy(obs)
-                ro.alive[t] = torch.from_numpy(alive)
-                ro.actions[t] = policy.act(ro.obs[t], ro.alive[t], update)
-                ro.valid[t] = ro.alive[t]
-                results = pool.step(ro.actions[t].numpy())
-                for w, res in enumerate(results):
-                    obs[w], alive[w] = res.next_obs, res.alive
-                    if res.lost:  # the worker failed: drop its running episode from the data
-                        ro.valid[ep_start[w]: t + 1, w] = False
-                        counters["lost_episodes"] += 1
-                        ep_return[w] = 0.0
-                        ep_terms[w].clear()
-                        ep_start[w] = t + 1
-                        continue
-                    ro.rewards[t, w] = torch.from_numpy(res.reward)
-                    ro.terminated[t, w] = torch.from_numpy(res.terminated)
-                    ro.truncated[t, w] = torch.from_numpy(res.truncated)
-                    for i, final in res.final_obs.items():
-                        ro.final_obs[(t, w, i)] = torch.from_numpy(final)
-                    ep_return[w] += res.reward
-                    for name, values in res.reward_terms.items():
-                        ep_terms[w][name] += values
-                    if res.episode is not None:
-                        counters["episodes"] += 1
-                        _log_episode(logger, counters["episodes"], spec.agents, ep_return[w], ep_terms[w],
-                                     res.episode)
-                        ep_return[w] = 0.0
-                        ep_terms[w].clear()
-                        ep_start[w] = t + 1
-                        bar.update(1)
-            ro.obs[T] = torch.from_numpy(obs)
-            ro.alive[T] = torch.from_numpy(alive)
-            counters["samples"] += int(ro.valid.sum())
-            # --- update: the learner AV's network; dissemination at the end of its block ---
-            t1 = time.perf_counter()
-            stats = learner_update(policy, learner, ro, tc)
-            if policy.ends_block(update):
-                policy.disseminate(learner)
-            counters["updates"] += 1
-            t2 = time.perf_counter()
-            timing["rollout"] += t1 - t0
-            timing["update"] += t2 - t1
-            counters["restarts"] = restarts_before + pool.restarts
-            sps = (counters["samples"] - start_samples) / max(t2 - start, 1e-9)
-            if counters["updates"] % tc.log_every == 0:
-                logger.update(counters["updates"], {"update": counters["updates"], "episodes": counters["episodes"],
-                                                    "samples": counters["samples"], "learner": learner,
-                                                    "samples_per_s": sps, "restarts": counters["restarts"],
-                                                    **stats})
-            bar.set_postfix(sps=f"{sps:.0f}", crash=f"{logger.rate('crashed'):.2f}",
-                            merge=f"{logger.rate('merged'):.2f}", ret=f"{logger.rate('return_mean'):.2f}",
-                            refresh=False)
-            if counters["updates"] % tc.checkpoint_every == 0:
-                checkpoint()
+        while not run.finished():
+            seeds = run.next_seeds()
+            got = run.collect(seeds)
+            stats = run.learn()
+            run.log(got, stats)
+            run.maybe_checkpoint()
     except KeyboardInterrupt:
-        interrupted = True
-        log.warning("interrupted at update %d; writing a checkpoint to %s", counters["updates"], ckpt_path)
+        run.interrupted = True
+        log.warning("interrupted at update %d; writing a checkpoint to %s", run.counters["updates"], run.ckpt_path)
     finally:
-        bar.close()
-        pool.close()
-        logger.close()
-    counters["restarts"] = restarts_before + pool.restarts
-    checkpoint()
-    wall = time.perf_counter() - start
-    return TrainResult(out_dir, ckpt_path, counters["episodes"], counters["updates"], counters["samples"],
-                       counters["restarts"], counters["lost_episodes"], interrupted, logger.rate("return_mean"),
-                       wall, timing["rollout"], timing["update"], counters["samples"] - start_samples)
+        run.close()
+    return run.result()
 
 
-def _log_episode(logger: RunLogger, n: int, agents: tuple[str, ...], returns: np.ndarray,
-                 terms: dict[str, np.ndarray], info: dict[str, Any]) -> None:
-    row: dict[str, Any] = {"episode": n, "return_mean": float(returns.mean())}
-    row.update({f"return_{a}": float(r) for a, r in zip(agents, returns, strict=True)})
-    for key in ("crashed", "merged", "mean_distance", "merger_distance", "length"):
-        row[key] = float(info.get(key, float("nan")))
-    row.update({f"term_{name}": float(values.mean()) for name, values in sorted(terms.items())})
-    logger.episode(n, row)
+class _Run:
+    """The state of one training run and its steps, each named for what `train` does with it."""
+
+    @classmethod
+    def open(cls, cfg: Config, out_dir: Path, workers: int | None, episodes: int | None, budget_min: float | None,
+             resume: bool, device: str | None, env_factory: EnvFactory | None, allow_change: bool = False,
+             progress: bool | None = None) -> _Run:
+        """Every check on the input and the run folder, before anything in the folder changes."""
+        tc = train_config(cfg)
+        tc = dataclasses.replace(tc, workers=workers or tc.workers, episodes=episodes or tc.episodes,
+                                 budget_min=tc.budget_min if budget_min is None else budget_min,
+                                 device=device or tc.device)
+        check_device(tc.device, "--device")
+        if tc.device.startswith("cuda") and not torch.cuda.is_available():
+            raise ConfigError(f"--device {tc.device}: CUDA is not available on this machine")
+        if out_dir.exists() and not out_dir.is_dir():
+            raise ConfigError(f"--out {out_dir}: is a file, not a folder")
+        ckpt_path = out_dir / CHECKPOINT_NAME
+        if not resume and ckpt_path.exists():
+            raise CheckpointError(f"checkpoint {ckpt_path}: exists already; pass --resume to continue that run "
+                                  "or choose another --out")
+        payload = read_checkpoint(ckpt_path) if resume else None
+        changes = config_changes(out_dir / "config.yaml", run_config(cfg, tc)) if resume else {}
+        if changes and not allow_change:
+            listed = "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changes.items())
+            raise ConfigError(f"--resume {out_dir}: the config differs from the run's ({listed}); resume with the "
+                              "run's config (cosim train --config RUN/config.yaml), or pass --allow-config-change "
+                              "to continue with the new one (recorded in RUN/config_changes.yaml)")
+        return cls(cfg, tc, out_dir, payload, env_factory or _default_env_factory(cfg), changes, progress)
+
+    def __init__(self, cfg: Config, tc: TrainConfig, out_dir: Path, payload: dict[str, Any] | None,
+                 env_factory: EnvFactory, changes: dict[str, tuple[Any, Any]] | None = None,
+                 progress: bool | None = None) -> None:
+        self.cfg, self.tc, self.out_dir = cfg, tc, out_dir
+        self.ckpt_path = out_dir / CHECKPOINT_NAME
+        self.counters = {k: 0 for k in COUNTERS}
+        self.train_s = 0.0  # over the whole run
+        if payload is not None:
+            self.counters.update({k: int(v) for k, v in payload["counters"].items() if k in COUNTERS})
+            self.train_s = float(payload["counters"].get("train_s", 0.0))
+        if tc.torch_threads:
+            torch.set_num_threads(tc.torch_threads)
+        random.seed(tc.seed)
+        np.random.seed(tc.seed)
+        torch.manual_seed(tc.seed)
+        self.pool = WorkerPool(env_factory, tc.workers, max_restarts=tc.max_restarts, timeout=tc.step_timeout)
+        try:
+            spec = self.pool.spec
+            self.agents = spec.agents
+            self.spec = {"agents": list(spec.agents), "obs_shape": list(spec.obs_shape), "obs_dtype": spec.obs_dtype,
+                         "n_actions": spec.n_actions, "shared_policy": tc.shared_policy,
+                         "feature_dim": tc.feature_dim, "head_hidden": tc.head_hidden}
+            self.policy = MultiAgentPolicy(len(spec.agents), spec.obs_shape, spec.n_actions, tc, tc.device)
+            if payload is not None:
+                check_spec(payload, self.spec, self.ckpt_path)
+                self.policy.load_state_dict(payload["policy"])
+                set_rng_state(payload["rng"])
+                log.info("resumed %s at update %d, episode %d", self.ckpt_path, self.counters["updates"],
+                         self.counters["episodes"])
+            # Storage for one update, allocated once: T steps x W workers x N agents.
+            self.batch = Batch.allocate(spec.max_steps, tc.workers, len(spec.agents), spec.obs_shape,
+                                        getattr(torch, spec.obs_dtype))
+            # Every check passed: from here on the run folder changes.
+            out_dir.mkdir(parents=True, exist_ok=True)
+            for stale in stale_temporaries(out_dir, CHECKPOINT_NAME) + stale_temporaries(out_dir, POLICY_NAME):
+                log.info("removing %s, left by a checkpoint write that was killed", stale)
+                stale.unlink()
+            if changes:
+                log.warning("resuming with a changed config: %s", ", ".join(changes))
+                _record_changes(out_dir, changes, self.counters["updates"])
+            atomic_write_text(out_dir / "config.yaml", yaml.safe_dump(run_config(cfg, tc), sort_keys=False))
+            self.logger = RunLogger(out_dir, self.counters["updates"], self.counters["episodes"])
+        except BaseException:
+            self.pool.close()
+            raise
+        self.restarts_before = self.counters["restarts"]
+        self.interrupted = False
+        self.start = time.perf_counter()
+        self.start_samples = self.counters["samples"]
+        self.timing = {"rollout": 0.0, "update": 0.0}
+        self.batch_stats: dict[str, float] = {}
+        # A progress bar on a terminal; periodic log lines otherwise (a log file gets no bar frames).
+        self.headless = not sys.stderr.isatty() if progress is None else not progress
+        self.heartbeat = Heartbeat(tc.log_every_s)
+        self.bar = tqdm(total=tc.episodes, initial=min(self.counters["episodes"], tc.episodes), unit="ep",
+                        dynamic_ncols=True, disable=self.headless, desc="train")
+
+    # -- the steps of `train` -----------------------------------------------------------------------------
+    def progress(self) -> float:
+        """Fraction of the run done: of its episodes, or of its time budget if that is further along."""
+        budget = self.tc.budget_min * 60.0
+        return max(self.counters["episodes"] / self.tc.episodes, self.train_s / budget if budget else 0.0)
+
+    def finished(self) -> bool:
+        return self.progress() >= 1.0
+
+    def next_seeds(self) -> list[int]:
+        """One episode seed per worker of this update; fewer workers when fewer episodes remain."""
+        n = min(self.tc.workers, self.tc.episodes - self.counters["episodes"])
+        return [episode_seed(self.tc.seed, self.counters["updates"], w) for w in range(n)]
+
+    def collect(self, seeds: list[int]) -> Collected:
+        t0 = time.perf_counter()
+        got = collect(self.pool, self.policy, self.batch, seeds, self.counters["updates"])
+        self.timing["rollout"] += time.perf_counter() - t0
+        self._rollout_s = time.perf_counter() - t0
+        return got
+
+    def learn(self) -> dict[str, float]:
+        t0 = time.perf_counter()
+        update = self.counters["updates"]
+        stats = self.policy.update(self.batch, self.tc, update, self.progress())
+        if self.policy.ends_block(update):
+            self.policy.disseminate(self.policy.learner(update))
+        dt = time.perf_counter() - t0
+        self.timing["update"] += dt
+        self.train_s += self._rollout_s + dt
+        return stats
+
+    def log(self, got: Collected, stats: dict[str, float]) -> None:
+        c = self.counters
+        c["updates"] += 1
+        c["samples"] += got.samples
+        c["lost_episodes"] += got.lost
+        c["restarts"] = self.restarts_before + self.pool.restarts
+        rows = []
+        for ep in got.episodes:
+            c["episodes"] += 1
+            row: dict[str, Any] = {"episode": c["episodes"], "update": c["updates"],
+                                   "return_mean": float(ep.returns.mean())}
+            row.update({f"return_{a}": float(r) for a, r in zip(self.agents, ep.returns, strict=True)})
+            for key in ("crashed", "merged", "mean_distance", "merger_distance", "length", "cause_av",
+                        "cause_hv_into_av", "cause_merger"):
+                row[key] = float(ep.info.get(key, float("nan")))
+            row.update({f"term_{name}": float(v.mean()) for name, v in sorted(ep.terms.items())})
+            rows.append(row)
+            self.logger.episode(row)
+        self.bar.update(len(got.episodes))
+        sps = (c["samples"] - self.start_samples) / max(time.perf_counter() - self.start, 1e-9)
+        self.logger.episodes_to_tb(c["updates"], rows)
+        if c["updates"] % self.tc.log_every == 0:
+            self.logger.update({"update": c["updates"], "episodes": c["episodes"], "samples": c["samples"],
+                                "samples_per_s": sps, "train_s": self.train_s, "restarts": c["restarts"], **stats})
+        rates = {"crash": self.logger.rate("crashed"), "merge": self.logger.rate("merged"),
+                 "ret": self.logger.rate("return_mean")}
+        self.bar.set_postfix(sps=f"{sps:.0f}", **{k: f"{v:.2f}" for k, v in rates.items()}, refresh=False)
+        if self.headless and self.heartbeat():
+            log.info("update %d, episode %d/%d, %.0f agent-samples/s, recent crash %.2f merge %.2f return %.2f, "
+                     "loss %.3f entropy %.3f, %.0f s trained", c["updates"], c["episodes"], self.tc.episodes, sps,
+                     rates["crash"], rates["merge"], rates["ret"], stats.get("loss", float("nan")),
+                     stats.get("entropy", float("nan")), self.train_s)
+
+    def maybe_checkpoint(self) -> None:
+        if self.counters["updates"] % self.tc.checkpoint_every == 0:
+            self.checkpoint()
+
+    def checkpoint(self) -> None:
+        save_checkpoint(self.ckpt_path, {
+            "spec": self.spec, "policy": self.policy.state_dict(),
+            "counters": {**self.counters, "train_s": self.train_s}, "rng": rng_state(),
+            "train": dataclasses.asdict(self.tc), "config": self.cfg.to_dict(), "phis": list(self.cfg.phis())})
+
+    def close(self) -> None:
+        self.bar.close()
+        self.pool.close()
+        self.logger.close()
+        self.counters["restarts"] = self.restarts_before + self.pool.restarts
+        self.checkpoint()
+
+    def result(self) -> TrainResult:
+        c = self.counters
+        return TrainResult(self.out_dir, self.ckpt_path, c["episodes"], c["updates"], c["samples"], c["restarts"],
+                           c["lost_episodes"], self.interrupted, self.logger.rate("return_mean"),
+                           time.perf_counter() - self.start, self.timing["rollout"], self.timing["update"],
+                           c["samples"] - self.start_samples, self.train_s)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -294,7 +329,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--out", type=Path, default=None, help="run folder (default: runs/<config stem>)")
     parser.add_argument("--workers", type=int, default=None, help="rollout worker processes (default: train.workers)")
     parser.add_argument("--episodes", type=int, default=None, help="episodes in total (default: train.episodes)")
+    parser.add_argument("--budget-min", type=float, default=None,
+                        help="wall-clock training budget over the whole run [min] (default: train.budget_min)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    parser.add_argument("--allow-config-change", action="store_true",
+                        help="with --resume: continue although the config differs from the run's (the differences "
+                             "are recorded in RUN/config_changes.yaml)")
     parser.add_argument("--device", default=None, help="cpu | cuda | cuda:N (default: train.device)")
     return parser
 
@@ -305,10 +345,12 @@ def run(args: argparse.Namespace) -> int:
         value = getattr(args, name)
         if value is not None and value <= 0:
             raise ConfigError(f"--{name}: must be > 0, got {value}")
+    if args.budget_min is not None and args.budget_min < 0:
+        raise ConfigError(f"--budget-min: must be >= 0, got {args.budget_min}")
     cfg = load_config(args.config, overrides=args.overrides)
     out = args.out or Path("runs") / Path(args.config).stem
-    result = train(cfg, out, workers=args.workers, episodes=args.episodes, resume=args.resume, device=args.device)
-    log.info("trained %d episodes (%d updates, %d agent-samples) into %s", result.episodes, result.updates,
-             result.samples, result.out_dir)
+    result = train(cfg, out, workers=args.workers, episodes=args.episodes, budget_min=args.budget_min,
+                   resume=args.resume, device=args.device, allow_config_change=args.allow_config_change)
+    log.info("trained %d episodes (%d updates, %d agent-samples, %.0f s) into %s", result.episodes, result.updates,
+             result.samples, result.train_s, result.out_dir)
     return 130 if result.interrupted else 0
-

@@ -4,7 +4,8 @@ Contract: agents `av_0 .. av_{N-1}` drive with the paper's 5 meta-actions (`cosi
 observe a stacked VelocityMap (frames, channels, height, width); rewards are the SVO rewards of
 `cosim.reward`, with every weighted term in `infos[agent]["reward_terms"]`. An agent terminates when its
 AV crashes or leaves the net. The episode is cut (every other live agent truncated) at the horizon, when
-the merging vehicle crashes or gets stuck at the end of the acceleration lane, and, with
+the merging vehicle crashes (or, with `sim.end_on_stuck`, gets stuck at the end of the acceleration lane:
+by default it waits there to the horizon), and, with
 `sim.on_collision: end` (the paper's rule), at the SUMO step of the first collision that involves an AV or
 the merging vehicle: the other AVs' own driving did not end there, so a learner bootstraps, and an
 egoistic AV gains nothing from keeping the episode alive. With `on_collision: remove` the colliders are
@@ -80,8 +81,7 @@ class MergeEnv(ParallelEnv):
         self._phis = np.asarray(config.phis(), dtype=np.float64)
         self.max_steps = max(1, round(config.sim.horizon / config.sim.decision_period))
         self._next_seed = config.sim.seed
-        self._tmp = Path(tempfile.mkdtemp(prefix="cosim_"))
-        self.route_file = self._tmp / "episode.rou.xml"  # this episode's vehicles, rewritten at reset
+        self._tmp: Path | None = None  # this env's temporary folder, made at the first reset, removed at close
         self.session = SumoSession(Path(config.net.file), config.sim.step_length, self.road.index_of, kind_of,
                                    config.sim.sumo_args, config.sim.collision_mingap_factor,
                                    drive_avs=config.sim.av_driver == "env")
@@ -111,6 +111,8 @@ class MergeEnv(ParallelEnv):
             seed = self._next_seed
         self._next_seed = seed + 1
         self.episode_seed = seed
+        if self._tmp is None:
+            self._tmp = Path(tempfile.mkdtemp(prefix="cosim_"))
         write_episode(plan_episode(self.cfg, self.desc, self.road, seed), self.cfg, self.desc, self.route_file)
         end_time = None if self._snap is None else self._snap.time
         extra: list[str] = []
@@ -158,7 +160,8 @@ class MergeEnv(ParallelEnv):
                                                         merged and not merged_before)
         # A merging vehicle gone without merging can only have been taken off the road: over too.
         collided = any(c.collider_kind in self._stop_on or c.victim_kind in self._stop_on for c in snap.collisions)
-        cut = (collided or status.crashed or status.stuck or (status.row < 0 and not merged)
+        stuck = status.stuck and self.cfg.sim.end_on_stuck
+        cut = (collided or status.crashed or stuck or (status.row < 0 and not merged)
                or self.tracker.steps >= self.max_steps)
         obs, rew, term, trunc, infos = {}, {}, {}, {}, {}
         for a in acting:
@@ -181,6 +184,13 @@ class MergeEnv(ParallelEnv):
             for a in acting:
                 infos[a]["episode"] = summary
         return obs, rew, term, trunc, infos
+
+    @property
+    def route_file(self) -> Path:
+        """The SUMO route file of the episode (vehicles, vTypes, routes), rewritten at every reset."""
+        if self._tmp is None:
+            raise RuntimeError("no route file before reset()")
+        return self._tmp / "episode.rou.xml"
 
     @property
     def snapshot(self) -> Snapshot:
@@ -286,13 +296,18 @@ class MergeEnv(ParallelEnv):
             self._collect_outputs(None if self._snap is None else self._snap.time)
         except SimulationError as exc:  # closing must not fail on an episode SUMO did not finish writing
             log.warning("%s", exc)
-        shutil.rmtree(self._tmp, ignore_errors=True)
+        if self._tmp is not None:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._tmp = None
         self._snap = None
 
     def __del__(self) -> None:  # an env dropped without close() must not keep the process's SUMO slot
         session = getattr(self, "session", None)
         if session is not None:
             session.close()
+        tmp = getattr(self, "_tmp", None)
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def parallel_env(config: str | Path | Mapping[str, Any] | Config | None = None,

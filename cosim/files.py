@@ -1,9 +1,11 @@
 """Writing results so that a failed or interrupted run loses nothing a user already has.
 
 Contract: `atomic_path(path)` yields a temporary path beside `path` that replaces it only once the body
-succeeded (a reader sees the old file or the new one, never half of one); `atomic_write_text` is its
-text shortcut. `AppendCsv` appends rows flushed one by one, keeps an existing file's header, and drops a
-half-written last line left by an interrupted run, so runs can resume.
+succeeded (a reader sees the old file or the new one, never half of one), with the permissions any new file
+of the user gets (the umask's, not mkstemp's private 0600); `atomic_write_text` is its text shortcut;
+`stale_temporaries(folder, name)` lists what an interrupted atomic write of `name` left behind. `AppendCsv`
+appends rows flushed one by one, keeps an existing file's header, and drops a half-written last line left by
+an interrupted run, so runs can resume.
 """
 
 from __future__ import annotations
@@ -17,10 +19,17 @@ from pathlib import Path
 from typing import Any
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 @contextmanager
 def atomic_path(path: Path) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.fchmod(fd, 0o666 & ~_umask())
     os.close(fd)
     try:
         yield Path(tmp)
@@ -35,6 +44,12 @@ def atomic_path(path: Path) -> Iterator[Path]:
 def atomic_write_text(path: Path, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+def stale_temporaries(folder: Path, name: str) -> list[Path]:
+    """Temporary files of `atomic_path(folder / name)` left by a write that was killed."""
+    stem, suffix = Path(name).stem, Path(name).suffix
+    return sorted(p for p in folder.glob(f".{stem}.*{suffix}") if p.is_file())
 
 
 class AppendCsv:

@@ -39,7 +39,7 @@ TRAINING_COLUMNS: dict[str, tuple[str, ...]] = {
 }
 
 
-def _save(fig: Figure, path: Path) -> Path:
+def save(fig: Figure, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(fig)
     fig.savefig(path, dpi=110)
@@ -64,7 +64,7 @@ def bars(summaries: Mapping[str, Mapping[str, Mapping[str, float]]], path: Path,
         ax.set_title(metric)
         if "%" in metric:
             ax.set_ylim(0, 105)
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def distance_histogram(samples: Mapping[str, Sequence[float]], path: Path, bins: int = 30,
@@ -79,7 +79,7 @@ def distance_histogram(samples: Mapping[str, Sequence[float]], path: Path, bins:
     ax.set_xlabel(xlabel)
     ax.set_ylabel("episodes")
     ax.legend()
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def read_training_log(path: Path) -> dict[str, np.ndarray]:
@@ -136,7 +136,7 @@ def training_curves(logs: Mapping[str, Path], path: Path, window: int = 100) -> 
         ax.set_title(f"{title} (rolling mean)")
         ax.set_xlabel("episode")
     axes[0].legend()
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def _vehicle_paths(traj: Mapping[str, np.ndarray]) -> list[tuple[str, int, np.ndarray, np.ndarray, np.ndarray]]:
@@ -188,7 +188,7 @@ def time_space(traj: Mapping[str, np.ndarray], path: Path, title: str = "", upst
     ax_a.set_yticks([int(a) for a in Action], [a.name.lower().replace("_", " ") for a in Action], fontsize=7)
     ax_a.set_ylim(-0.5, len(Action) - 0.5)
     ax_a.set_xlabel("time [s]")
-    return _save(fig, path)
+    return save(fig, path)
 
 
 def _lane_polygons(lanes: Sequence[tuple[np.ndarray, float]]) -> list[np.ndarray]:
@@ -236,4 +236,4 @@ def top_views(traj: Mapping[str, np.ndarray], lanes: Sequence[tuple[np.ndarray, 
         ax.set_aspect("equal")
         ax.set_title(f"t = {times[k]:.1f} s", fontsize=9)
         ax.tick_params(labelsize=7)
-    return _save(fig, path)
+    return save(fig, path)

@@ -38,6 +38,8 @@ RAMP_ANGLE_DEG = 12.0
 # Small junctions: netconvert's default radius (4 m) makes the lane-drop junction 8 m long, which would
 # shorten the acceleration lane by that much.
 JUNCTION_RADIUS = 0.5
+# Shorter, and a 5 m car at ramp speed has no room to find a gap and change lanes: no merge is possible.
+MIN_ACCEL_LENGTH = 20.0  # [m]
 HIGHWAY_PRIORITY = 3
 RAMP_PRIORITY = 1
 
@@ -64,6 +66,9 @@ class MergeGeometry:
             value = getattr(self, key)
             if not isinstance(value, int | float) or not math.isfinite(value) or value <= 0:
                 raise NetError(f"merge net: {key} must be a positive number, got {value!r}")
+        if self.accel_length < MIN_ACCEL_LENGTH:
+            raise NetError(f"merge net: accel_length must be at least {MIN_ACCEL_LENGTH:g} m, or no vehicle can merge "
+                           f"from the ramp, got {self.accel_length!r}")
         if not self.name or any(c in self.name for c in "/\\") or self.name.startswith("."):
             raise NetError(f"merge net: name must be a plain file stem, got {self.name!r}")
 

@@ -1,6 +1,8 @@
-"""Rollout workers over the fake env: PettingZoo semantics, copies of views, auto-reset, restarts."""
+"""Rollout workers over the fake env: shared-memory observations, PettingZoo semantics, failures and restarts."""
 
 import functools
+import os
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -9,7 +11,8 @@ from pettingzoo.test import parallel_api_test
 
 import cosim
 from agents.fake_env import CueEnv, make_fake_env
-from agents.rollout import WorkerPool, _seed
+from agents.rollout import WorkerPool
+from agents.train import episode_seed
 from cosim.config import EVAL_SEED_START
 from cosim.errors import NetError, SimulationError
 
@@ -20,62 +23,86 @@ def test_fake_env_passes_the_pettingzoo_parallel_api_test() -> None:
     assert env.observation_space("av_0") is env.observation_space("av_1")
 
 
-def test_pool_steps_resets_and_reports_episodes() -> None:
-    pool = WorkerPool(make_fake_env(n_agents=2, horizon=3), workers=2, seed=1)
+@pytest.mark.parametrize("dtype", ["uint8", "float16", "float32"])
+def test_shared_memory_carries_the_envs_observations_exactly(dtype: str) -> None:
+    # The same env in this process, seeded alike, is the reference: every observation must arrive bit for bit.
+    pool = WorkerPool(make_fake_env(n_agents=3, horizon=4, dtype=dtype), workers=2)
+    local = [CueEnv(n_agents=3, horizon=4, dtype=dtype) for _ in range(2)]
     try:
-        assert pool.spec.agents == ("av_0", "av_1") and pool.spec.obs_shape == (2, 4, 8, 16)
-        obs, alive = pool.reset()
-        assert obs.shape == (2, 2, 2, 4, 8, 16) and alive.all()
-        assert obs.flags.writeable
-        idle = np.ones((2, 2), dtype=np.int64)
-        pool.step(idle)
-        results = pool.step(idle)
-        assert all(r.episode is None for r in results)
-        before = results[0].next_obs.copy()
-        results = pool.step(idle)  # step 3 = horizon: both agents truncated, episode over, auto-reset
-        for r in results:
-            assert r.truncated.all() and not r.terminated.any()
-            assert set(r.final_obs) == {0, 1} and r.final_obs[0].shape == (2, 4, 8, 16)
-            assert r.episode is not None and r.episode["length"] == 3
-            assert r.alive.all()  # the next episode's first observation
-            assert set(r.reward_terms) == {"speed", "collision"}
-        np.testing.assert_array_equal(before, before.copy())  # earlier results are copies, not views
+        assert pool.obs.shape == (2, 3, 2, 4, 8, 16) and pool.obs.dtype == np.dtype(dtype)
+        assert pool.spec.max_steps == 4
+        pool.send_reset([0, 1], [11, 12])
+        pool.recv([0, 1])
+        want = [env.reset(seed=s)[0] for env, s in zip(local, (11, 12), strict=True)]
+        rng = np.random.default_rng(0)
+        for _ in range(4):
+            for w in range(2):
+                np.testing.assert_array_equal(pool.obs[w], np.stack([want[w][a] for a in local[w].possible_agents]))
+            actions = rng.choice([0, 2], size=(2, 3))
+            pool.send_step([0, 1], actions)
+            results = pool.recv([0, 1])
+            for w, res in enumerate(results):
+                want[w], rew, _, trunc, _ = local[w].step(dict(zip(local[w].possible_agents, actions[w].tolist(),
+                                                                   strict=True)))
+                assert res.reward.tolist() == [rew[a] for a in local[w].possible_agents]
+                for i, a in enumerate(local[w].possible_agents):
+                    if trunc[a]:  # truncated: the final observation is in the final slot
+                        np.testing.assert_array_equal(pool.final[w, i], want[w][a])
+        assert all(r.episode is not None and r.episode["length"] == 4 for r in results)  # no auto-reset
     finally:
         pool.close()
+    assert not any(Path(f).exists() for f in pool._files)
 
 
 def test_crashed_agents_leave_and_others_go_on() -> None:
     pool = WorkerPool(make_fake_env(n_agents=2, horizon=5), workers=1)
     try:
-        pool.reset()
-        (r,) = pool.step(np.array([[3, 1]]))  # av_0 accelerates: crash
+        pool.send_reset([0], [0])
+        pool.recv([0])
+        pool.send_step([0], np.array([[3, 1]]))  # av_0 accelerates: crash
+        (r,) = pool.recv([0])
         assert r.terminated.tolist() == [True, False] and r.reward[0] == -1.0
         assert r.alive.tolist() == [False, True] and r.episode is None
-        assert not r.next_obs[0].any()
+        assert not pool.obs[0, 0].any() and pool.obs[0, 1].any()
     finally:
         pool.close()
 
 
-def test_failing_worker_is_restarted_and_its_episode_lost(tmp_path: Path) -> None:
+def test_failing_worker_is_replaced_and_its_episode_lost(tmp_path: Path) -> None:
     flag = tmp_path / "failed"
     pool = WorkerPool(make_fake_env(n_agents=2, fail_once_file=str(flag), fail_at_step=2), workers=2)
     try:
-        pool.reset()
+        pool.send_reset([0, 1], [0, 1])
+        pool.recv([0, 1])
         idle = np.ones((2, 2), dtype=np.int64)
-        first = pool.step(idle)
-        assert not any(r.lost for r in first)
-        second = pool.step(idle)  # one of the two workers fails here (whichever touches the flag first)
+        pool.send_step([0, 1], idle)
+        assert not any(r.lost for r in pool.recv([0, 1]))
+        pool.send_step([0, 1], idle)
+        second = pool.recv([0, 1])  # one of the two workers fails here (whichever touches the flag first)
         assert sum(r.lost for r in second) == 1 and pool.restarts == 1
-        lost = next(r for r in second if r.lost)
-        assert lost.alive.all() and lost.next_obs.any()  # a fresh episode in a fresh process
-        assert flag.exists()
-        third = pool.step(idle)
-        assert not any(r.lost for r in third)
+        lost = next(w for w, r in enumerate(second) if r.lost)
+        assert not second[lost].alive.any()
+        pool.send_reset([lost], [5])  # the replacement serves the shared slots like the first
+        (r,) = pool.recv([lost])
+        assert r.alive.all() and pool.obs[lost].any()
     finally:
         pool.close()
 
 
-def test_too_many_restarts_abort(tmp_path: Path) -> None:
+def test_a_stopped_worker_times_out_and_is_replaced() -> None:
+    pool = WorkerPool(make_fake_env(n_agents=2), workers=1, timeout=2.0)
+    try:
+        os.kill(pool.workers[0].proc.pid, signal.SIGSTOP)
+        pool.send_reset([0], [0])
+        (r,) = pool.recv([0])
+        assert r.lost and pool.restarts == 1
+        pool.send_reset([0], [0])
+        assert not pool.recv([0])[0].lost
+    finally:
+        pool.close()
+
+
+def test_too_many_restarts_abort() -> None:
     with pytest.raises(SimulationError, match="max_restarts"):
         WorkerPool(make_fake_env(n_agents=0), workers=1, max_restarts=1)
 
@@ -88,6 +115,7 @@ def test_bad_input_in_a_worker_stops_the_run_at_once(tmp_path: Path) -> None:
 
 
 def test_training_seeds_stay_below_evaluation_seeds() -> None:
-    seeds = {_seed(s, w, g) for s in (0, 7, 10_000_123) for w in range(4) for g in range(3)}
-    assert len(seeds) == 36
-    assert all(0 <= s < EVAL_SEED_START - 1_000_000 for s in seeds)
+    seeds = {episode_seed(s, u, w) for s in (0, 7, 10_000_123) for u in range(5) for w in range(4)}
+    assert len(seeds) == 60
+    assert all(0 <= s < EVAL_SEED_START for s in seeds)
+    assert episode_seed(3, 10, 2) == episode_seed(3, 10, 2)

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
 import agents.train as train_module
 from agents.checkpoint import CheckpointError, load_policy, read_checkpoint
@@ -15,9 +16,10 @@ from agents.model import ActorCritic
 from agents.multiagent import MultiAgentPolicy
 from agents.train import add_arguments, run, train
 from cosim.config import load_config
+from cosim.errors import ConfigError
 
 SMALL = {"feature_dim": 32, "head_hidden": 32, "optimizer": "adam", "lr": 0.002, "disseminate_every": 4, "gamma": 0.5,
-         "checkpoint_every": 10, "seed": 3}
+         "checkpoint_every": 10, "seed": 3, "precision": "float32"}
 
 
 def cfg_with(**train: object):
@@ -42,18 +44,19 @@ def episode_rows(run: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-def test_training_improves_the_return_over_the_untrained_policy(tmp_path: Path) -> None:
-    cfg = cfg_with()
+@pytest.mark.parametrize("algo,shared", [("a2c", True), ("ppo", True), ("a2c", False)])
+def test_training_improves_the_return_over_the_untrained_policy(tmp_path: Path, algo: str, shared: bool) -> None:
+    cfg = cfg_with(algo=algo, shared_policy=shared)
     torch.manual_seed(SMALL["seed"])
     untrained = MultiAgentPolicy(2, (2, 4, 8, 16), 5, train_config(cfg))
-    before = mean_return({"av_0": untrained.nets[0], "av_1": untrained.nets[1]})
+    before = mean_return({"av_0": untrained.nets[0], "av_1": untrained.nets[-1]})
     result = train(cfg, tmp_path / "run", workers=2, episodes=300, env_factory=make_fake_env(n_agents=2),
                    progress=False)
     policies, meta = load_policy(result.checkpoint)
     after = mean_return(policies)
     # random play scores about 0 per episode, the optimum 8 (horizon 8, reward 1 per correct answer)
     assert after > before + 4.0, (before, after)
-    assert result.episodes >= 300 and meta["counters"]["episodes"] == result.episodes
+    assert result.episodes == 300 and meta["counters"]["episodes"] == result.episodes
     assert len(episode_rows(tmp_path / "run")) == result.episodes
     assert (tmp_path / "run" / "config.yaml").is_file() and (tmp_path / "run" / "updates.csv").is_file()
     assert any((tmp_path / "run" / "tb").iterdir())
@@ -79,7 +82,7 @@ def test_checkpoint_round_trip_and_resume_continues(tmp_path: Path) -> None:
 
     more = train(cfg, run, workers=1, episodes=12, resume=True, env_factory=make_fake_env(n_agents=2),
                  progress=False)
-    assert more.updates > first.updates and more.episodes >= 12
+    assert more.updates > first.updates and more.episodes == 12
     numbers = [int(r["episode"]) for r in episode_rows(run)]
     assert numbers == list(range(1, more.episodes + 1))  # the logs continue the same run
 
@@ -119,12 +122,12 @@ def test_worker_failure_restarts_and_the_episode_is_not_counted(tmp_path: Path) 
                    env_factory=make_fake_env(n_agents=2, fail_once_file=str(flag), fail_at_step=3), progress=False)
     assert flag.exists()
     assert result.restarts == 1 and result.lost_episodes == 1
-    assert len(episode_rows(run)) == result.episodes >= 8
+    assert len(episode_rows(run)) == result.episodes == 8
 
 
 def test_ctrl_c_writes_a_checkpoint(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     calls = {"n": 0}
-    original = train_module.learner_update
+    original = MultiAgentPolicy.update
 
     def interrupt_on_third(*args: object, **kwargs: object) -> dict[str, float]:
         calls["n"] += 1
@@ -132,7 +135,7 @@ def test_ctrl_c_writes_a_checkpoint(tmp_path: Path, monkeypatch: pytest.MonkeyPa
             raise KeyboardInterrupt
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(train_module, "learner_update", interrupt_on_third)
+    monkeypatch.setattr(MultiAgentPolicy, "update", interrupt_on_third)
     result = train(cfg_with(), tmp_path / "run", workers=1, episodes=1000, env_factory=make_fake_env(n_agents=2),
                    progress=False)
     assert result.interrupted and result.updates == 2
@@ -145,9 +148,66 @@ def test_cli_arguments_reach_the_trainer(tmp_path: Path, monkeypatch: pytest.Mon
     monkeypatch.setattr(train_module, "_default_env_factory", lambda cfg: make_fake_env(n_agents=2))
     parser = add_arguments(argparse.ArgumentParser())
     args = parser.parse_args(["--config", str(config), "--out", str(tmp_path / "run"), "--workers", "1",
-                              "--episodes", "2", "--set", "train.lr=0.01", "--set", "train.rollout_steps=2"])
+                              "--episodes", "2", "--set", "train.lr=0.01", "--set", "train.algo=ppo"])
     assert run(args) == 0
     _, meta = load_policy(tmp_path / "run")
-    assert meta["train"]["lr"] == 0.01 and meta["train"]["rollout_steps"] == 2 and meta["train"]["workers"] == 1
+    assert meta["train"]["lr"] == 0.01 and meta["train"]["algo"] == "ppo" and meta["train"]["workers"] == 1
     saved = load_config(tmp_path / "run" / "config.yaml")  # the resolved config loads back
     assert train_config(saved).lr == 0.01 and train_config(saved).episodes == 2
+
+
+def test_resume_continues_the_same_sequence_bitwise(tmp_path: Path) -> None:
+    cfg = cfg_with(algo="ppo", checkpoint_every=2)
+    whole = train(cfg, tmp_path / "whole", workers=2, episodes=16, env_factory=make_fake_env(n_agents=2),
+                  progress=False)
+    train(cfg, tmp_path / "split", workers=2, episodes=8, env_factory=make_fake_env(n_agents=2), progress=False)
+    split = train(cfg, tmp_path / "split", workers=2, episodes=16, resume=True, env_factory=make_fake_env(n_agents=2),
+                  progress=False)
+    assert (split.updates, split.episodes, split.samples) == (whole.updates, whole.episodes, whole.samples)
+    a, b = read_checkpoint(whole.checkpoint)["policy"], read_checkpoint(split.checkpoint)["policy"]
+    assert all(torch.equal(v, b["nets"][0][k]) for k, v in a["nets"][0].items())
+    assert episode_rows(tmp_path / "whole") == episode_rows(tmp_path / "split")
+
+
+def test_resume_refuses_a_changed_config_before_touching_the_run(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    train(cfg_with(), run, workers=1, episodes=2, env_factory=make_fake_env(n_agents=2), progress=False)
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    with pytest.raises(ConfigError, match=r"train\.lr: 0\.002 -> 0\.01.*--allow-config-change"):
+        train(cfg_with(lr=0.01), run, workers=1, episodes=4, resume=True, env_factory=make_fake_env(n_agents=2),
+              progress=False)
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()} == before  # nothing changed
+    # More episodes is what a resume is for: allowed. A deliberate change is allowed and recorded.
+    train(cfg_with(), run, workers=1, episodes=4, resume=True, env_factory=make_fake_env(n_agents=2), progress=False)
+    train(cfg_with(lr=0.01), run, workers=1, episodes=6, resume=True, allow_config_change=True,
+          env_factory=make_fake_env(n_agents=2), progress=False)
+    changes = yaml.safe_load((run / "config_changes.yaml").read_text())
+    assert changes[0]["changes"] == {"train.lr": {"from": 0.002, "to": 0.01}}
+    assert train_config(load_config(run / "config.yaml")).lr == 0.01
+
+
+def test_a_killed_run_resumes_with_logs_cut_to_its_checkpoint(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    cfg = cfg_with(checkpoint_every=2)
+    train(cfg, run, workers=1, episodes=4, env_factory=make_fake_env(n_agents=2), progress=False)
+    # A run killed after the checkpoint of episode 4: two more episodes logged, a checkpoint write half done.
+    rows = episode_rows(run)
+    with (run / "episodes.csv").open("a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writerows([{**rows[-1], "episode": "5"}, {**rows[-1], "episode": "6"}])
+    (run / ".checkpoint.x1y2z3.pt").write_bytes(b"half")
+    train(cfg, run, workers=1, episodes=8, resume=True, env_factory=make_fake_env(n_agents=2), progress=False)
+    assert [int(r["episode"]) for r in episode_rows(run)] == list(range(1, 9))
+    assert not (run / ".checkpoint.x1y2z3.pt").exists()
+
+
+def test_policy_file_is_small_and_loads_like_the_checkpoint(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    train(cfg_with(shared_policy=False), run, workers=1, episodes=2, env_factory=make_fake_env(n_agents=2),
+          progress=False)
+    assert (run / "policy.pt").stat().st_size < (run / "checkpoint.pt").stat().st_size / 3
+    small, meta = load_policy(run)  # the policy file, since the run has one
+    full, _ = load_policy(run / "checkpoint.pt")
+    assert meta["path"].endswith("policy.pt") and set(small) == {"av_0", "av_1"}
+    for a in small:
+        assert all(torch.equal(v, full[a].state_dict()[k]) for k, v in small[a].state_dict().items())

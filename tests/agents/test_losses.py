@@ -1,11 +1,12 @@
-"""GAE / n-step advantages against hand-computed values, terminated vs truncated, and the A2C loss."""
+"""GAE / n-step advantages against hand-computed values, terminated vs truncated, the A2C and PPO losses,
+value normalisation."""
 
 import math
 
 import pytest
 import torch
 
-from agents.a2c import OPTIMIZERS, a2c_loss, gae
+from agents.losses import OPTIMIZERS, ValueNorm, actor_critic_loss, gae, normalize
 
 
 def col(*values: float) -> torch.Tensor:
@@ -83,7 +84,7 @@ def test_a2c_loss_hand_computed() -> None:
     values = torch.tensor([1.0, 2.0], requires_grad=True)
     actions = torch.tensor([0, 3])
     adv, ret = torch.tensor([1.0, -3.0]), torch.tensor([2.0, 2.0])
-    terms = a2c_loss(logits, values, actions, adv, ret, entropy_coef=0.1, value_coef=0.5)
+    terms = actor_critic_loss(logits, values, actions, adv, ret, entropy_coef=0.1, value_coef=0.5)
     policy = -(-math.log(5) * 1.0 + -math.log(5) * -3.0) / 2
     value = (1.0**2 + 0.0**2) / 2
     assert terms.policy.item() == pytest.approx(policy)
@@ -92,6 +93,47 @@ def test_a2c_loss_hand_computed() -> None:
     assert terms.loss.item() == pytest.approx(policy + 0.5 * value - 0.1 * math.log(5))
     terms.loss.backward()
     assert logits.grad is not None and values.grad is not None
+
+
+def test_ppo_clipped_loss_hand_computed() -> None:
+    # Two actions, log pi(a0) = log 0.8 and log pi(a1) = log 0.2 now; before the update they were 0.5 and 0.5.
+    logits = torch.log(torch.tensor([[0.8, 0.2], [0.8, 0.2], [0.8, 0.2]]))
+    actions = torch.tensor([0, 0, 1])
+    old_logp = torch.log(torch.tensor([0.5, 0.5, 0.5]))
+    adv = torch.tensor([1.0, -1.0, 1.0])
+    values, ret = torch.zeros(3), torch.zeros(3)
+    terms = actor_critic_loss(logits, values, actions, adv, ret, entropy_coef=0.0, value_coef=0.0,
+                              old_logp=old_logp, clip_range=0.2)
+    # ratios 1.6, 1.6, 0.4; clipped to 1.2, 1.2, 0.8:
+    # min(1.6 * 1, 1.2 * 1) = 1.2; min(1.6 * -1, 1.2 * -1) = -1.6; min(0.4 * 1, 0.8 * 1) = 0.4
+    assert terms.policy.item() == pytest.approx(-(1.2 - 1.6 + 0.4) / 3)
+    assert terms.clip_fraction.item() == pytest.approx(1.0)
+    # k3 KL estimate: mean of (rho - 1) - log rho
+    rho = torch.tensor([1.6, 1.6, 0.4])
+    assert terms.approx_kl.item() == pytest.approx(((rho - 1) - rho.log()).mean().item(), rel=1e-5)
+    # Inside the clip range PPO's surrogate has A2C's gradient.
+    logits = torch.zeros(1, 2, requires_grad=True)
+    ppo = actor_critic_loss(logits, torch.zeros(1), torch.tensor([0]), torch.tensor([2.0]), torch.zeros(1), 0.0,
+                            0.0, old_logp=torch.log(torch.tensor([0.5])), clip_range=0.2)
+    (g_ppo,) = torch.autograd.grad(ppo.policy, logits)
+    a2c = actor_critic_loss(logits, torch.zeros(1), torch.tensor([0]), torch.tensor([2.0]), torch.zeros(1), 0.0, 0.0)
+    (g_a2c,) = torch.autograd.grad(a2c.policy, logits)
+    torch.testing.assert_close(g_ppo, g_a2c)
+    with pytest.raises(ValueError, match="old_logp"):
+        actor_critic_loss(logits, torch.zeros(1), torch.tensor([0]), torch.ones(1), torch.zeros(1), 0.0, 0.0,
+                          clip_range=0.2)
+
+
+def test_value_norm_tracks_the_targets_scale() -> None:
+    vn = ValueNorm(beta=0.5)
+    x = torch.tensor([100.0, 110.0, 90.0, 100.0])
+    assert torch.equal(vn.normalize(x), x)  # nothing seen yet: identity
+    for _ in range(30):
+        vn.update(x)
+    mean, std = vn.stats()
+    assert mean.item() == pytest.approx(100.0) and std.item() == pytest.approx(x.std(unbiased=False).item(), rel=1e-3)
+    torch.testing.assert_close(vn.denormalize(vn.normalize(x)), x)
+    assert normalize(torch.tensor([1.0, 3.0])).tolist() == pytest.approx([-0.7071, 0.7071], abs=1e-4)
 
 
 @pytest.mark.parametrize("name", sorted(OPTIMIZERS))

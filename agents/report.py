@@ -1,0 +1,197 @@
+"""The sweep's report: tables, figures and the checks of the paper's claims, from the sweep folder alone.
+
+Contract: `write_report(out, phis, seeds, baselines, episodes, command, walls)` reads `out/baselines/*/` and
+`out/runs/*/eval/` (evaluations on the same seeds) and the runs' training logs, and writes `out/report.md`,
+`out/sweep.json` and the figures beside them; returns {"table", "episodes", "claims"}. Rates are pooled over
+the training seeds of an angle (Wilson intervals over every evaluation episode).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from agents.sweep import ALTRUISTIC, EGOISTIC, median, pooled, rate, run_name
+from cosim import plots
+from cosim.config import load_config
+from cosim.files import atomic_write_text
+from cosim.metrics import format_table, summarize
+from cosim.netdesc import load_net_description
+from cosim.roadnet import load_roadnet
+
+RATES = {"crash [%]": "crashed", "crash, AV at fault [%]": "cause_av", "crash, HV into AV [%]": "cause_hv_into_av",
+         "crash, merging vehicle [%]": "cause_merger", "merge success [%]": "merged"}
+FLOW = ("throughput [veh/h]", "time loss [s]")
+
+
+def phi_label(phi: float) -> str:
+    named = {EGOISTIC: " (egoistic)", ALTRUISTIC: " (altruistic)"}
+    return f"phi={phi:.3f}" + next((v for k, v in named.items() if math.isclose(phi, k, abs_tol=1e-3)), "")
+
+
+def write_report(out: Path, phis: Sequence[float], seeds: Sequence[int], baselines: Sequence[str], episodes: int,
+                 command: str, walls: Mapping[str, float]) -> dict[str, Any]:
+    from agents.evaluate import EVAL_SEED
+
+    base_rows = {b: pooled([out / "baselines" / b], EVAL_SEED, episodes)[0] for b in baselines}
+    run_rows = {(phi, s): pooled([out / "runs" / run_name(phi, s) / "eval"], EVAL_SEED, episodes)[0]
+                for phi in phis for s in seeds}
+    phi_rows = {phi: [r for s in seeds for r in run_rows[(phi, s)]] for phi in phis}
+    table = {**{b: summarize(rows) for b, rows in base_rows.items()},
+             **{phi_label(phi): summarize(rows) for phi, rows in phi_rows.items()}}
+    counts = {**{b: len(r) for b, r in base_rows.items()}, **{phi_label(p): len(r) for p, r in phi_rows.items()}}
+    figures = {
+        "Crash and merge rates over the SVO angle": _rates_vs_phi(out / "rates_vs_phi.png", phi_rows, base_rows),
+        "Traffic flow over the SVO angle": _flow_vs_phi(out / "flow_vs_phi.png", table, phis, baselines),
+        "The merging vehicle's distance": plots.distance_histogram(
+            {label: [float(r["merger_distance"]) for r in rows] for label, rows in _ego_alt(phi_rows).items()},
+            out / "merger_distance.png"),
+    }
+    curves = plots.training_curves({f"{phi_label(p)} seed {s}": out / "runs" / run_name(p, s) / "episodes.csv"
+                                    for p in phis for s in seeds}, out / "training_curves.png")
+    if curves is not None:
+        figures["Training curves"] = curves
+    claims = _claims(out, phi_rows, run_rows, base_rows, seeds)
+    lines = ["# Sweep report", "", f"Command: `{command}`" if command else "", "",
+             f"Evaluation: {episodes} episodes per run and baseline on seeds {EVAL_SEED}..{EVAL_SEED + episodes - 1}, "
+             f"the same for all; trained angles pooled over training seeds {list(seeds)}. Rates with 95% Wilson "
+             "intervals, other metrics with 95% Student-t intervals.", "",
+             format_table(table, counts, markdown=True), "", "## The paper's claims", ""]
+    lines += [f"- **{c['claim']}**: {'holds' if c['holds'] else 'NOT reached'}. {c['detail']}" for c in claims]
+    lines += [""]
+    for title, path in figures.items():
+        lines += [f"## {title}", "", f"![{title}]({path.name})", ""]
+    lines += ["## Per training seed", "", _per_seed_table(run_rows, phis, seeds), "", "## Wall time", ""]
+    lines += [f"- {k}: {v / 60:.1f} min" for k, v in walls.items()]
+    atomic_write_text(out / "report.md", "\n".join(lines) + "\n")
+    result = {"table": table, "episodes": counts, "claims": claims, "walls": dict(walls), "command": command}
+    atomic_write_text(out / "sweep.json", json.dumps(result, indent=2, default=float) + "\n")
+    return result
+
+
+def _ego_alt(phi_rows: Mapping[float, list]) -> dict[str, list]:
+    """The egoistic and altruistic angles' rows where the sweep has them, else every angle's."""
+    both = [p for p in (_find(phi_rows, EGOISTIC), _find(phi_rows, ALTRUISTIC)) if p is not None]
+    return {phi_label(p): phi_rows[p] for p in (both if len(both) == 2 else phi_rows)}
+
+
+def _find(phi_rows: Mapping[float, Any], target: float) -> float | None:
+    return next((p for p in phi_rows if math.isclose(p, target, abs_tol=1e-3)), None)
+
+
+def _accel_end_distance(out: Path) -> float:
+    """[m] from the ramp's start to the end of the acceleration lane: a merging vehicle farther has merged."""
+    cfg = load_config(next(out.glob("runs/*/eval/config.yaml")))
+    road = load_roadnet(cfg.net.file)
+    desc = load_net_description(road, None if cfg.net.description is None else Path(cfg.net.description))
+    ramp = sum(road.edge_length(e) for e in desc.ramp) + road.junction_length(desc.ramp[-1], desc.merge_edge)
+    return ramp + road.edge_length(desc.merge_edge)
+
+
+def _claims(out: Path, phi_rows: Mapping[float, list], run_rows: Mapping[tuple[float, int], list],
+            base_rows: Mapping[str, list], seeds: Sequence[int]) -> list[dict[str, Any]]:
+    claims: list[dict[str, Any]] = []
+    ego, alt = _find(phi_rows, EGOISTIC), _find(phi_rows, ALTRUISTIC)
+
+    def ci(r: Mapping[str, float]) -> str:
+        return f"{r['mean']:.1f}% [{r['ci_low']:.1f}, {r['ci_high']:.1f}] (n={r['n']})"
+
+    for phi in (p for p in (ego, alt) if p is not None):
+        crash = rate(phi_rows[phi], "crashed")
+        parts, holds = [], True
+        for b in ("idle", "scripted"):
+            if b in base_rows:
+                other = rate(base_rows[b], "crashed")
+                apart = crash["ci_high"] < other["ci_low"]
+                below = crash["mean"] < other["mean"]
+                holds &= below and (apart or b != "idle")
+                verdict = "below, intervals apart" if apart else "below" if below else "not below"
+                parts.append(f"{b} {ci(other)}: {verdict}")
+        claims.append({"claim": f"(1) trained AVs at {phi_label(phi)} crash less than idle and scripted AVs",
+                       "holds": holds, "detail": f"trained {ci(crash)}; " + "; ".join(parts)})
+    if ego is not None and alt is not None:
+        m_ego, m_alt = rate(phi_rows[ego], "merged"), rate(phi_rows[alt], "merged")
+        per_seed = {s: (rate(run_rows[(ego, s)], "merged")["mean"], rate(run_rows[(alt, s)], "merged")["mean"])
+                    for s in seeds}
+        every = all(a > e for e, a in per_seed.values())
+        apart = m_alt["ci_low"] > m_ego["ci_high"]
+        claims.append({"claim": "(2) altruistic AVs get the merging vehicle in more often than egoistic ones",
+                       "holds": apart and every and min(m_ego["n"], m_alt["n"]) >= 300,
+                       "detail": f"egoistic {ci(m_ego)}, altruistic {ci(m_alt)}; intervals "
+                                 f"{'apart' if apart else 'overlap'}; per seed (ego, alt): "
+                                 + ", ".join(f"seed {s}: {e:.0f}% vs {a:.0f}%" for s, (e, a) in per_seed.items())})
+        end = _accel_end_distance(out)
+        beyond = {lbl: float(np.mean([float(r["merger_distance"]) > end for r in phi_rows[p]]))
+                  for lbl, p in (("egoistic", ego), ("altruistic", alt))}
+        med = {lbl: median(phi_rows[p], "merger_distance") for lbl, p in (("egoistic", ego), ("altruistic", alt))}
+        claims.append({"claim": "(3) the merging vehicle's distance shifts downstream with altruistic AVs",
+                       "holds": med["altruistic"] > med["egoistic"] and beyond["altruistic"] > beyond["egoistic"],
+                       "detail": f"median {med['egoistic']:.0f} m egoistic vs {med['altruistic']:.0f} m altruistic; "
+                                 f"beyond the acceleration lane's end ({end:.0f} m from the ramp's start) in "
+                                 f"{100 * beyond['egoistic']:.0f}% vs {100 * beyond['altruistic']:.0f}% of episodes"})
+    flow = {phi_label(p): summarize(rows) for p, rows in phi_rows.items()}
+    trade = "; ".join(f"{k}: crash {v['crash [%]']['mean']:.0f}%, merge {v['merge success [%]']['mean']:.0f}%, "
+                      f"throughput {v.get('throughput [veh/h]', {}).get('mean', math.nan):.0f} veh/h, time loss "
+                      f"{v.get('time loss [s]', {}).get('mean', math.nan):.2f} s" for k, v in flow.items())
+    claims.append({"claim": "(4) the safety/flow trade-off over the SVO angle", "holds": len(phi_rows) >= 3,
+                   "detail": trade + " (figure below)"})
+    return claims
+
+
+def _per_seed_table(run_rows: Mapping[tuple[float, int], list], phis: Sequence[float], seeds: Sequence[int]) -> str:
+    lines = ["| angle | seed | crash [%] | merge success [%] | episodes |", "|---|---|---|---|---|"]
+    for phi in phis:
+        for s in seeds:
+            rows = run_rows[(phi, s)]
+            c, m = rate(rows, "crashed"), rate(rows, "merged")
+            lines.append(f"| {phi_label(phi)} | {s} | {c['mean']:.1f} [{c['ci_low']:.1f}, {c['ci_high']:.1f}] | "
+                         f"{m['mean']:.1f} [{m['ci_low']:.1f}, {m['ci_high']:.1f}] | {len(rows)} |")
+    return "\n".join(lines)
+
+
+def _rates_vs_phi(path: Path, phi_rows: Mapping[float, list], base_rows: Mapping[str, list]) -> Path:
+    fig = Figure(figsize=(11, 3.6), layout="constrained")
+    axes = fig.subplots(1, 2)
+    phis = sorted(phi_rows)
+    for ax, labels in zip(axes, (list(RATES)[:4], ["merge success [%]"]), strict=True):
+        for i, label in enumerate(labels):
+            stats = [rate(phi_rows[p], RATES[label]) for p in phis]
+            mean = np.array([s["mean"] for s in stats])
+            err = np.array([[s["mean"] - s["ci_low"] for s in stats], [s["ci_high"] - s["mean"] for s in stats]])
+            ax.errorbar(phis, mean, yerr=err, marker="o", capsize=3, color=f"C{i}", label=label.replace(" [%]", ""))
+        for j, (b, rows) in enumerate(base_rows.items()):
+            ax.axhline(rate(rows, RATES[labels[0]])["mean"], ls="--", lw=0.8, color=f"C{j + 5}",
+                       label=f"{b} ({labels[0].replace(' [%]', '')})")
+        ax.set_xlabel("SVO angle phi [rad]")
+        ax.set_ylabel("% of episodes")
+        ax.set_ylim(-2, 102)
+        ax.legend(fontsize=7)
+    axes[0].set_title("Crashes (total and by cause), 95% intervals")
+    axes[1].set_title("Merge success, 95% intervals")
+    return plots.save(fig, path)
+
+
+def _flow_vs_phi(path: Path, table: Mapping[str, Mapping], phis: Sequence[float], baselines: Sequence[str]) -> Path:
+    fig = Figure(figsize=(10, 3.4), layout="constrained")
+    axes = fig.subplots(1, 2)
+    xs = sorted(phis)
+    for ax, metric in zip(axes, FLOW, strict=True):
+        stats = [table[phi_label(p)].get(metric, {}) for p in xs]
+        mean = np.array([s.get("mean", math.nan) for s in stats])
+        err = np.nan_to_num(np.array([[s.get("mean", math.nan) - s.get("ci_low", math.nan) for s in stats],
+                                      [s.get("ci_high", math.nan) - s.get("mean", math.nan) for s in stats]]))
+        ax.errorbar(xs, mean, yerr=err, marker="o", capsize=3, label="trained AVs")
+        for j, b in enumerate(baselines):
+            if metric in table[b]:
+                ax.axhline(table[b][metric]["mean"], ls="--", lw=0.8, color=f"C{j + 1}", label=b)
+        ax.set_xlabel("SVO angle phi [rad]")
+        ax.set_ylabel(metric)
+        ax.set_title(f"{metric.split(' [')[0]} over the flow window, 95% intervals")
+        ax.legend(fontsize=7)
+    return plots.save(fig, path)

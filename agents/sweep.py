@@ -1,0 +1,141 @@
+"""`cosim sweep`: train every (SVO angle, seed) within a time budget, evaluate all on the same seeds, report.
+
+Contract: `sweep(cfg, out, phis, seeds, budget_min, ...)` writes into `out`:
+- `baselines/NAME/`: `cosim evaluate` of each baseline policy (idle, scripted, courteous, sumo by default);
+- `runs/phi_P_seed_S/`: a training run (`cosim train` with `reward.phi = P`, `train.seed = S` and the wall-clock
+  budget) and its evaluation in `eval/`, every run and baseline on the same evaluation seeds;
+- `report.md` with `sweep.json` and figures: crash % (total and by cause) and merge success % per angle with
+  95% intervals (Wilson, episodes pooled over seeds) beside the baselines; the merging vehicle's distance
+  egoistic vs altruistic (the paper's histogram); throughput and time loss over the angles (the
+  safety/flow trade-off); the training curves; and the checks of the paper's claims, each with its figures.
+Every step is resumable: an interrupted sweep run again with the same arguments continues each training run
+from its checkpoint, each evaluation from its last finished episode, and skips what is complete. The exact
+command and each step's wall time go into the report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import shlex
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.evaluate import EVAL_SEED, PolicySpec, evaluate, read_rows
+from cosim.cli import add_config_arguments
+from cosim.config import Config, load_config
+from cosim.errors import ConfigError
+from cosim.files import atomic_write_text
+from cosim.metrics import format_table, rate_ci, summarize
+
+log = logging.getLogger(__name__)
+
+BASELINES = ("idle", "scripted", "courteous", "sumo")
+EGOISTIC, ALTRUISTIC = 0.0, math.pi / 4
+
+
+def run_name(phi: float, seed: int) -> str:
+    return f"phi_{phi:.4f}_seed_{seed}"
+
+
+def sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], budget_min: float,
+          eval_episodes: int = 100, eval_workers: int = 2, baselines: Sequence[str] = BASELINES,
+          command: str = "") -> dict[str, Any]:
+    """Run (or continue) the sweep into `out`; returns the report's data (module doc)."""
+    if not phis or not seeds:
+        raise ConfigError("cosim sweep: give at least one --phi and one --seed")
+    out = Path(out)
+    walls: dict[str, float] = _load_walls(out)
+    for name in baselines:
+        t0 = time.perf_counter()
+        evaluate(cfg, PolicySpec(name), out / "baselines" / name, episodes=eval_episodes, seed=EVAL_SEED,
+                 workers=eval_workers, trajectories=0, plots=False)
+        walls.setdefault(f"evaluate {name}", time.perf_counter() - t0)
+    for phi in phis:
+        for seed in seeds:
+            _train_and_evaluate(cfg, out, phi, seed, budget_min, eval_episodes, eval_workers, walls)
+            atomic_write_text(out / "walls.json", json.dumps(walls, indent=2) + "\n")
+    from agents.report import write_report  # matplotlib only once there is something to plot
+
+    return write_report(out, phis, seeds, baselines, eval_episodes, command, walls)
+
+
+def _load_walls(out: Path) -> dict[str, float]:
+    path = out / "walls.json"
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def _train_and_evaluate(cfg: Config, out: Path, phi: float, seed: int, budget_min: float, eval_episodes: int,
+                        eval_workers: int, walls: dict[str, float]) -> None:
+    from agents.checkpoint import CHECKPOINT_NAME, read_checkpoint
+    from agents.train import train
+
+    name = run_name(phi, seed)
+    run_dir = out / "runs" / name
+    run_cfg = load_config(cfg, {"reward.phi": phi, "train.seed": seed, "train.budget_min": budget_min})
+    ckpt = run_dir / CHECKPOINT_NAME
+    trained_s = float(read_checkpoint(ckpt)["counters"].get("train_s", 0.0)) if ckpt.is_file() else 0.0
+    if trained_s < budget_min * 60.0:
+        log.info("training %s (%.0f of %.0f min done)", name, trained_s / 60, budget_min)
+        t0 = time.perf_counter()
+        result = train(run_cfg, run_dir, resume=ckpt.is_file())
+        walls[f"train {name}"] = walls.get(f"train {name}", 0.0) + time.perf_counter() - t0
+        if result.interrupted:
+            raise KeyboardInterrupt
+    t0 = time.perf_counter()
+    evaluate(run_cfg, PolicySpec("checkpoint", str(ckpt.resolve())), run_dir / "eval", episodes=eval_episodes,
+             seed=EVAL_SEED, workers=eval_workers, trajectories=3, run_dir=run_dir, plots=False)
+    walls.setdefault(f"evaluate {name}", time.perf_counter() - t0)
+
+
+def pooled(eval_dirs: Sequence[Path], first_seed: int, episodes: int) -> tuple[list[dict[str, str]], dict]:
+    """The evaluation rows of several folders (one per training seed), pooled, and their summary."""
+    wanted = range(first_seed, first_seed + episodes)
+    rows = [r for d in eval_dirs for r in read_rows(d / "episodes.csv") if int(r["seed"]) in wanted]
+    return rows, summarize(rows)
+
+
+def rate(rows: Sequence[dict[str, str]], column: str) -> dict[str, float]:
+    ci = rate_ci([float(r[column] == "True") if r[column] in ("True", "False") else float(r[column]) for r in rows])
+    return {"mean": 100 * ci.mean, "ci_low": 100 * ci.low, "ci_high": 100 * ci.high, "n": ci.n}
+
+
+def median(rows: Sequence[dict[str, str]], column: str) -> float:
+    values = np.array([float(r[column]) for r in rows if r.get(column) not in (None, "", "nan")])
+    return float(np.median(values)) if values.size else math.nan
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_config_arguments(parser)
+    parser.add_argument("--phi", type=float, nargs="+", required=True, metavar="RAD",
+                        help="SVO angles [rad] to train, e.g. 0 0.3927 0.7854 1.1781 1.5708")
+    parser.add_argument("--seeds", type=int, nargs="+", required=True, help="training seeds, e.g. 0 1 2")
+    parser.add_argument("--budget-min", type=float, required=True, help="training wall-clock budget per run [min]")
+    parser.add_argument("--eval-episodes", type=int, default=100, help="evaluation episodes per run and baseline")
+    parser.add_argument("--eval-workers", type=int, default=2, help="evaluation worker processes")
+    parser.add_argument("--baselines", nargs="*", choices=BASELINES, default=list(BASELINES))
+    parser.add_argument("--out", type=Path, default=Path("runs/sweep"), help="sweep folder (default: %(default)s)")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.budget_min <= 0:
+        raise ConfigError(f"--budget-min: must be > 0, got {args.budget_min}")
+    if args.eval_episodes < 1 or args.eval_workers < 1:
+        raise ConfigError("--eval-episodes and --eval-workers: must be >= 1")
+    for phi in args.phi:
+        if not -math.pi <= phi <= math.pi:
+            raise ConfigError(f"--phi: expected angles in radians within [-pi, pi], got {phi}")
+    cfg = load_config(args.config, args.overrides)
+    command = "cosim sweep " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["sweep"] else ""
+    result = sweep(cfg, args.out, args.phi, args.seeds, args.budget_min, args.eval_episodes, args.eval_workers,
+                   args.baselines, command)
+    log.info("wrote %s", args.out / "report.md")
+    print(format_table(result["table"], result["episodes"]))
+    return 0
