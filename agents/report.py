@@ -40,9 +40,12 @@ def write_report(out: Path, phis: Sequence[float], seeds: Sequence[int], baselin
     from agents.evaluate import EVAL_SEED
 
     base_rows = {b: pooled([out / "baselines" / b], EVAL_SEED, episodes)[0] for b in baselines}
-    run_rows = {(phi, s): pooled([out / "runs" / run_name(phi, s) / "eval"], EVAL_SEED, episodes)[0]
-                for phi in phis for s in seeds}
-    phi_rows = {phi: [r for s in seeds for r in run_rows[(phi, s)]] for phi in phis}
+    # The runs evaluated so far (all of them once the sweep is complete).
+    run_rows = {(phi, s): rows for phi in phis for s in seeds
+                if (rows := pooled([out / "runs" / run_name(phi, s) / "eval"], EVAL_SEED, episodes)[0])}
+    phis_all = list(phis)
+    phis = [p for p in phis if any(k[0] == p for k in run_rows)]
+    phi_rows = {phi: [r for s in seeds for r in run_rows.get((phi, s), [])] for phi in phis}
     table = {**{b: summarize(rows) for b, rows in base_rows.items()},
              **{phi_label(phi): summarize(rows) for phi, rows in phi_rows.items()}}
     counts = {**{b: len(r) for b, r in base_rows.items()}, **{phi_label(p): len(r) for p, r in phi_rows.items()}}
@@ -54,7 +57,7 @@ def write_report(out: Path, phis: Sequence[float], seeds: Sequence[int], baselin
             out / "merger_distance.png"),
     }
     curves = plots.training_curves({f"{phi_label(p)} seed {s}": out / "runs" / run_name(p, s) / "episodes.csv"
-                                    for p in phis for s in seeds}, out / "training_curves.png")
+                                    for p, s in run_rows}, out / "training_curves.png")
     if curves is not None:
         figures["Training curves"] = curves
     claims = _claims(out, phi_rows, run_rows, base_rows, seeds)
@@ -62,6 +65,7 @@ def write_report(out: Path, phis: Sequence[float], seeds: Sequence[int], baselin
              f"Evaluation: {episodes} episodes per run and baseline on seeds {EVAL_SEED}..{EVAL_SEED + episodes - 1}, "
              f"the same for all; trained angles pooled over training seeds {list(seeds)}. Rates with 95% Wilson "
              "intervals, other metrics with 95% Student-t intervals.", "",
+             f"Runs evaluated: {len(run_rows)} of {len(seeds) * len(phis_all)}.", "",
              format_table(table, counts, markdown=True), "", "## The paper's claims", ""]
     lines += [f"- **{c['claim']}**: {'holds' if c['holds'] else 'NOT reached'}. {c['detail']}" for c in claims]
     lines += [""]
@@ -118,7 +122,7 @@ def _claims(out: Path, phi_rows: Mapping[float, list], run_rows: Mapping[tuple[f
     if ego is not None and alt is not None:
         m_ego, m_alt = rate(phi_rows[ego], "merged"), rate(phi_rows[alt], "merged")
         per_seed = {s: (rate(run_rows[(ego, s)], "merged")["mean"], rate(run_rows[(alt, s)], "merged")["mean"])
-                    for s in seeds}
+                    for s in seeds if (ego, s) in run_rows and (alt, s) in run_rows}
         every = all(a > e for e, a in per_seed.values())
         apart = m_alt["ci_low"] > m_ego["ci_high"]
         claims.append({"claim": "(2) altruistic AVs get the merging vehicle in more often than egoistic ones",
@@ -148,6 +152,8 @@ def _per_seed_table(run_rows: Mapping[tuple[float, int], list], phis: Sequence[f
     lines = ["| angle | seed | crash [%] | merge success [%] | episodes |", "|---|---|---|---|---|"]
     for phi in phis:
         for s in seeds:
+            if (phi, s) not in run_rows:
+                continue
             rows = run_rows[(phi, s)]
             c, m = rate(rows, "crashed"), rate(rows, "merged")
             lines.append(f"| {phi_label(phi)} | {s} | {c['mean']:.1f} [{c['ci_low']:.1f}, {c['ci_high']:.1f}] | "

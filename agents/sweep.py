@@ -4,11 +4,13 @@ Contract: `sweep(cfg, out, phis, seeds, budget_min, ...)` writes into `out`:
 - `baselines/NAME/`: `cosim evaluate` of each baseline policy (idle, scripted, courteous, sumo by default);
 - `runs/phi_P_seed_S/`: a training run (`cosim train` with `reward.phi = P`, `train.seed = S` and the wall-clock
   budget) and its evaluation in `eval/`, every run and baseline on the same evaluation seeds;
-- `report.md` with `sweep.json` and figures: crash % (total and by cause) and merge success % per angle with
+- `report.md` with `sweep.json` and figures (rewritten after every run, over the runs evaluated so far):
+  crash % (total and by cause) and merge success % per angle with
   95% intervals (Wilson, episodes pooled over seeds) beside the baselines; the merging vehicle's distance
   egoistic vs altruistic (the paper's histogram); throughput and time loss over the angles (the
   safety/flow trade-off); the training curves; and the checks of the paper's claims, each with its figures.
-Every step is resumable: an interrupted sweep run again with the same arguments continues each training run
+Runs go egoistic and altruistic angles first, seed by seed, then the other angles (`run_order`). Every step is
+resumable: an interrupted sweep run again with the same arguments continues each training run
 from its checkpoint, each evaluation from its last finished episode, and skips what is complete. The exact
 command and each step's wall time go into the report.
 """
@@ -58,13 +60,23 @@ def sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], b
         evaluate(cfg, PolicySpec(name), out / "baselines" / name, episodes=eval_episodes, seed=EVAL_SEED,
                  workers=eval_workers, trajectories=0, plots=False)
         walls.setdefault(f"evaluate {name}", time.perf_counter() - t0)
-    for phi in phis:
-        for seed in seeds:
-            _train_and_evaluate(cfg, out, phi, seed, budget_min, eval_episodes, eval_workers, walls)
-            atomic_write_text(out / "walls.json", json.dumps(walls, indent=2) + "\n")
     from agents.report import write_report  # matplotlib only once there is something to plot
 
-    return write_report(out, phis, seeds, baselines, eval_episodes, command, walls)
+    result: dict[str, Any] = {}
+    for phi, seed in run_order(phis, seeds):
+        _train_and_evaluate(cfg, out, phi, seed, budget_min, eval_episodes, eval_workers, walls)
+        atomic_write_text(out / "walls.json", json.dumps(walls, indent=2) + "\n")
+        # The report so far after every run: an interrupted sweep still shows what it has.
+        result = write_report(out, phis, seeds, baselines, eval_episodes, command, walls)
+    return result
+
+
+def run_order(phis: Sequence[float], seeds: Sequence[int]) -> list[tuple[float, int]]:
+    """The egoistic and altruistic angles first, seed by seed (the paper's comparison), then the other angles
+    seed by seed (the first seed of each gives the whole grid early)."""
+    key = [p for p in phis if any(math.isclose(p, k, abs_tol=1e-3) for k in (EGOISTIC, ALTRUISTIC))]
+    rest = [p for p in phis if p not in key]
+    return [(p, s) for group in (key, rest) for s in seeds for p in group]
 
 
 def _load_walls(out: Path) -> dict[str, float]:
@@ -81,9 +93,13 @@ def _train_and_evaluate(cfg: Config, out: Path, phi: float, seed: int, budget_mi
     run_dir = out / "runs" / name
     run_cfg = load_config(cfg, {"reward.phi": phi, "train.seed": seed, "train.budget_min": budget_min})
     ckpt = run_dir / CHECKPOINT_NAME
-    trained_s = float(read_checkpoint(ckpt)["counters"].get("train_s", 0.0)) if ckpt.is_file() else 0.0
-    if trained_s < budget_min * 60.0:
-        log.info("training %s (%.0f of %.0f min done)", name, trained_s / 60, budget_min)
+    done = False
+    if ckpt.is_file():  # finished: its budget spent, or all of its episodes trained
+        saved = read_checkpoint(ckpt)
+        trained_s = float(saved["counters"].get("train_s", 0.0))
+        done = trained_s >= budget_min * 60.0 or saved["counters"]["episodes"] >= saved["train"]["episodes"]
+    if not done:
+        log.info("training %s (budget %.1f min)", name, budget_min)
         t0 = time.perf_counter()
         result = train(run_cfg, run_dir, resume=ckpt.is_file())
         walls[f"train {name}"] = walls.get(f"train {name}", 0.0) + time.perf_counter() - t0
