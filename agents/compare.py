@@ -71,7 +71,8 @@ def plot_run(eval_dir: Path, plots_dir: Path, label: str, rows: Sequence[dict[st
             seed = f.stem.split("_")[1]
             out.append(plots.time_space(traj, plots_dir / f"timespace_seed_{seed}.png",
                                         title=f"{label}: episode seed {seed}, guide AV {traj['guide']}"))
-            out.append(plots.top_views(traj, lanes, plots_dir / f"topview_seed_{seed}.png"))
+            out.append(plots.top_views(traj, lanes, plots_dir / f"topview_seed_{seed}.png",
+                                       title=f"{label}: episode seed {seed}"))
     return out
 
 
@@ -113,7 +114,7 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
     if curves is not None:
         figures["training curves"] = curves
     per_run: dict[str, list[Path]] = {}
-    for e in tqdm(evals, desc="plots", unit="run", leave=False):
+    for e in tqdm(evals, desc="plots", unit="run", leave=False, disable=None):
         per_run[e.label] = plot_run(e.eval_dir, out_dir / e.label, e.label)
     result = {e.label: {**e.summary, "episodes": episodes[e.label], "metrics": metrics[e.label],
                         "eval_dir": str(e.eval_dir)} for e in evals}
@@ -163,7 +164,7 @@ def _report(evals: Sequence[Evaluation], metrics: dict, episodes: dict[str, int]
                   "differences below mix the policies' effect with that of:", ">"]
         lines += [f"> - {m}" for m in mismatches] + [""]
     lines += [f"Each cell: mean over episodes [{conf:.0%} interval: Wilson score for the crash and merge rates, "
-             "Student t for the other metrics]. Throughput, travel time and time loss come from SUMO's own "
+             "Student t for the other metrics]. Throughput, time loss and mean speed come from SUMO's own "
              "induction loops and tripinfo output.", "",
              format_table(metrics, episodes, markdown=True, confidence=conf), ""]
     for title, path in figures.items():

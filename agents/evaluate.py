@@ -10,8 +10,9 @@ Contract:
   config), `config.yaml` (the resolved config), `episodes.csv` (one row per episode, appended and flushed
   as each finishes: the env's episode summary (`MergeEnv.episode_summary`: crash and crash by class, merge
   and time to merge, distance and mean speed by class, the merging vehicle's distance, the guide AV and its
-  actions), SUMO's throughput [veh/h], travel time and time loss [s], and `distance_check`, the largest
-  |our odometer - SUMO's tripinfo routeLength| [m] over the episode's vehicles), `summary.json` (each
+  actions), SUMO's throughput [veh/h], time loss [s] and mean speed [m/s] over the flow window, and
+  `distance_check`, the largest |our odometer - SUMO's tripinfo routeLength| [m] over the episode's
+  vehicles), `summary.json` (each
   metric's mean and interval, `cosim.metrics.summarize`, written atomically), `trajectories/seed_S.npz` for
   the first `trajectories` episodes, `sumo/episode_S/` (SUMO's tripinfo and induction-loop files) and
   `plots/`.
@@ -52,9 +53,9 @@ from tqdm import tqdm
 from cosim.cli import Heartbeat, add_config_arguments
 from cosim.config import Config, load_config, parse_section
 from cosim.control import Action
-from cosim.env import MergeEnv
 from cosim.errors import ConfigError, CosimError
 from cosim.files import AppendCsv, atomic_path, atomic_write_text
+from cosim.merge_env import MergeEnv
 from cosim.metrics import format_table, summarize
 from cosim.policies import POLICIES
 

@@ -13,8 +13,10 @@ Contract:
   shared slots stay valid until its next command. Episodes do not reset by themselves: the step that ends one
   carries the env's `episode` summary and the caller decides what comes next.
 - A worker whose env raises, whose process dies or that stays silent for `timeout` seconds is killed and
-  replaced by a fresh process; its result is `lost` (no agent alive): the running episode is lost and must
-  not be counted. More than `max_restarts` replacements over the pool's life raise `SimulationError`.
+  replaced by a fresh process (given `START_TIMEOUT` to start); its result is `lost` (no agent alive): the
+  running episode is lost and must not be counted. More than `max_restarts` replacements over the pool's
+  life raise `SimulationError`, and so does a worker whose env fails to start `START_ATTEMPTS` times in a row
+  (a systematic fault, not bad luck).
   Bad input (`ConfigError`, `NetError`) fails the same way in every process and is raised at once.
 This module imports neither torch nor SUMO, so workers start fast; the env factory imports what it needs.
 """
@@ -39,6 +41,11 @@ import numpy as np
 from cosim.errors import ConfigError, NetError, SimulationError
 
 log = logging.getLogger(__name__)
+
+START_ATTEMPTS = 3
+# [s] Starting a worker (imports, SUMO's start) takes longer than a step, more so on a loaded machine: a short
+# step timeout must not turn every replacement into another timeout.
+START_TIMEOUT = 120.0
 
 EnvFactory = Callable[[], Any]  # () -> pettingzoo.ParallelEnv; must be picklable (e.g. functools.partial)
 
@@ -266,15 +273,18 @@ class WorkerPool:
         self.workers[w].recv(self.timeout)
 
     def _recv_spec(self, w: int) -> EnvSpec:
-        while True:
+        for _ in range(START_ATTEMPTS):
             try:
-                return self.workers[w].recv(self.timeout)
+                return self.workers[w].recv(max(self.timeout, START_TIMEOUT))
             except WorkerFailure as exc:
+                reason = exc
                 self._replace(w, exc)
+        raise SimulationError(f"rollout worker {w} could not start its env {START_ATTEMPTS} times in a row; "
+                              f"last failure: {reason}")
 
     def _replace(self, w: int, reason: Exception) -> None:
         """Kill worker w and start another in its place (attached to the shared slots once they exist)."""
-        while True:
+        for _ in range(START_ATTEMPTS):
             self.restarts += 1
             if self.restarts > self.max_restarts:
                 raise SimulationError(f"rollout worker {w} failed; {self.restarts} failures in total exceed "
@@ -286,13 +296,15 @@ class WorkerPool:
             if not self._files:  # starting up: the caller receives the new worker's spec
                 return
             try:
-                spec = self.workers[w].recv(self.timeout)
+                spec = self.workers[w].recv(max(self.timeout, START_TIMEOUT))
                 if spec != self.spec:
                     raise SimulationError(f"rollout worker {w} was restarted with another env spec: {spec}")
                 self._attach(w)
                 return
             except WorkerFailure as exc:
                 reason = exc
+        raise SimulationError(f"rollout worker {w} could not start its env {START_ATTEMPTS} times in a row; "
+                              f"last failure: {reason}")
 
     def _send(self, ws: Sequence[int], cmd: str, args: Sequence[Any]) -> None:
         for w, arg in zip(ws, args, strict=True):

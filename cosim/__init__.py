@@ -1,14 +1,15 @@
-"""SUMO co-simulation of an on-ramp merge for multi-agent RL: `cosim.parallel_env(config, overrides)`."""
+"""SUMO co-simulation of an on-ramp merge for multi-agent RL: `cosim.parallel_env(config, overrides)`, or the
+AEC form `cosim.env(config, overrides)`."""
 
 from typing import Any
 
-__all__ = ["parallel_env"]
+__all__ = ["env", "parallel_env"]
 
 
 def __getattr__(name: str) -> Any:
     # Lazy, so `import cosim.config` stays light (no gymnasium / pettingzoo import).
-    if name == "parallel_env":
-        from cosim.env import parallel_env
+    if name in __all__:
+        import cosim.merge_env
 
-        return parallel_env
+        return getattr(cosim.merge_env, name)
     raise AttributeError(name)

@@ -13,7 +13,7 @@ Contract:
   when the simulation is reloaded or closed; parse them after that.
 - `read_episode_outputs(folder, duration)` parses both files into `SumoOutputs` over the window [0,
   duration] [s] (the env runs every episode to the same window): throughput past the detector [veh/h] =
-  vehicles entering any loop / duration, mean travel time, time loss and speed over all trips (an
+  vehicles entering any loop / duration, mean time loss and speed over all trips (an
   unfinished trip counts up to the window's end, waiting to enter counts as lost, a removed wreck stands
   until the end: `read_tripinfo`), and each vehicle's driven distance (tripinfo routeLength, which equals
   SUMO's odometer) for cross-checks. Missing or truncated files raise `SimulationError` naming the file.
@@ -77,7 +77,6 @@ def episode_output_args(folder: Path, site: DetectorSite, period: float = 1e6) -
 class SumoOutputs:
     detector_count: int  # vehicles that entered a loop
     throughput_vph: float  # [veh/h] detector_count over the episode's duration
-    travel_time: float  # [s] mean trip duration (unfinished trips up to the episode's end)
     time_loss: float  # [s] mean time lost against driving at the desired speed
     mean_speed: float  # [m/s] mean over trips of distance driven / time in the window
     n_trips: int
@@ -85,7 +84,7 @@ class SumoOutputs:
 
     def as_row(self) -> dict[str, float | int]:
         return {"throughput_vph": self.throughput_vph, "detector_count": self.detector_count,
-                "travel_time": self.travel_time, "time_loss": self.time_loss, "window_speed": self.mean_speed,
+                "time_loss": self.time_loss, "window_speed": self.mean_speed,
                 "n_trips": self.n_trips}
 
 
@@ -109,7 +108,7 @@ def read_tripinfo(path: Path, end: float) -> list[dict[str, float | str]]:
     """Trips of every vehicle, undeparted and unfinished ones included. Travel time and time loss include the
     time a vehicle waited to enter the road (SUMO's departDelay: a backlog at the entry is lost time too). A
     vehicle taken off the road (SUMO's `vaporized`, e.g. a removed wreck) counts as standing until `end` [s]:
-    its trip would otherwise end early and improve the mean travel time and time loss by the crash."""
+    its trip would otherwise end early and improve the mean time loss and speed by the crash."""
     trips = []
     for t in _parse(path).iter("tripinfo"):
         delay = float(t.get("departDelay", "0"))
@@ -134,7 +133,6 @@ def read_episode_outputs(folder: Path, duration: float) -> SumoOutputs:
     return SumoOutputs(
         detector_count=count,
         throughput_vph=count * 3600.0 / duration if duration > 0 else math.nan,
-        travel_time=mean("duration"),
         time_loss=mean("time_loss"),
         mean_speed=float(np.mean([t["route_length"] / t["duration"] for t in trips if t["duration"] > 0]))
         if any(t["duration"] > 0 for t in trips) else math.nan,

@@ -174,9 +174,7 @@ def time_space(traj: Mapping[str, np.ndarray], path: Path, title: str = "", upst
             a.axvline(merge_t, color="grey", ls=":", lw=1)
     ax.set_ylim(m0 - upstream, m1 + downstream)
     ax.set_ylabel("position along the highway [m]")
-    handles = [Rectangle((0, 0), 1, 1, color=c) for c in (COLORS[KIND_AV], COLORS[KIND_HV], COLORS[KIND_MERGER],
-                                                         GUIDE_COLOR)]
-    ax.legend(handles, ["AV", "HV", "merging vehicle", "guide AV"], loc="upper left", fontsize=8)
+    ax.legend(*_class_legend(), loc="upper left", fontsize=8)
     ax.set_title(title or "time-space diagram of the merge area")
     ax_v.set_ylabel("speed [m/s]")
     if ax_v.lines:
@@ -191,6 +189,11 @@ def time_space(traj: Mapping[str, np.ndarray], path: Path, title: str = "", upst
     return save(fig, path)
 
 
+def _class_legend() -> tuple[list[Rectangle], list[str]]:
+    colors = (COLORS[KIND_AV], COLORS[KIND_HV], COLORS[KIND_MERGER], GUIDE_COLOR)
+    return [Rectangle((0, 0), 1, 1, color=c) for c in colors], ["AV", "HV", "merging vehicle", "guide AV"]
+
+
 def _lane_polygons(lanes: Sequence[tuple[np.ndarray, float]]) -> list[np.ndarray]:
     polys = []
     for shape, width in lanes:
@@ -203,7 +206,7 @@ def _lane_polygons(lanes: Sequence[tuple[np.ndarray, float]]) -> list[np.ndarray
 
 
 def top_views(traj: Mapping[str, np.ndarray], lanes: Sequence[tuple[np.ndarray, float]], path: Path,
-              offsets: Sequence[float] = (-3.0, 0.0, 3.0), half_window: float = 110.0) -> Path:
+              title: str = "", offsets: Sequence[float] = (-3.0, 0.0, 3.0), half_window: float = 110.0) -> Path:
     """Top views at the merge time plus `offsets` [s] (episode end when there was no merge), centred on the
     merging vehicle (or its last place), vehicles drawn to scale and coloured by class, the guide AV orange."""
     times = np.asarray(traj["time"])
@@ -235,5 +238,11 @@ def top_views(traj: Mapping[str, np.ndarray], lanes: Sequence[tuple[np.ndarray, 
         ax.set_ylim(lo - 2, hi + 2)
         ax.set_aspect("equal")
         ax.set_title(f"t = {times[k]:.1f} s", fontsize=9)
+        ax.set_ylabel("y [m]", fontsize=8)
         ax.tick_params(labelsize=7)
+    axes[-1].set_xlabel("x [m] (SUMO network coordinates)", fontsize=8)
+    axes[0].legend(*_class_legend(), loc="upper left", fontsize=7, ncols=4)
+    when = f"merge at {merge_t:.1f} s" if math.isfinite(merge_t) else "no merge: around the episode's end"
+    fig.suptitle(f"{title + ': ' if title else ''}top views around the merge ({when}); crashed vehicles "
+                 "outlined red", fontsize=10)
     return save(fig, path)

@@ -19,7 +19,7 @@ from collections.abc import Callable
 import numpy as np
 
 from cosim.control import Action
-from cosim.env import MergeEnv
+from cosim.merge_env import MergeEnv
 from cosim.snapshot import KIND_MERGER, Snapshot
 
 Policy = Callable[[MergeEnv], dict[str, int]]

@@ -10,7 +10,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from cosim.cli import add_config_arguments
-from cosim.env import parallel_env
+from cosim.merge_env import parallel_env
 from cosim.policies import POLICIES
 
 log = logging.getLogger(__name__)
@@ -28,15 +28,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.save_routes is not None:  # before SUMO starts: a bad folder is the user's error, not a lost run
+        args.save_routes.mkdir(parents=True, exist_ok=True)
     env = parallel_env(args.config, args.overrides)
     try:
         first_seed = env.cfg.sim.seed if args.seed is None else args.seed
         for name in args.policy or ["scripted", "random"]:
             policy = POLICIES[name](first_seed)
-            for ep in tqdm(range(args.episodes), desc=name, unit="ep", leave=False):
+            for ep in tqdm(range(args.episodes), desc=name, unit="ep", leave=False, disable=None):
                 env.reset(seed=first_seed + ep)
                 if args.save_routes is not None:
-                    args.save_routes.mkdir(parents=True, exist_ok=True)
                     shutil.copy(env.route_file, args.save_routes / f"episode_{env.episode_seed}.rou.xml")
                 infos: dict = {}
                 while env.agents:

@@ -56,7 +56,7 @@ def test_evaluation_files_and_summary(idle_eval: Path) -> None:
     for key in ("length", "crashed", "crash_av", "crash_hv", "crash_merger", "merged", "merge_failed",
                 "time_to_merge", "mean_distance", "av_distance",
                 "hv_distance", "merger_distance", "av_speed", "guide_av", "guide_actions", "throughput_vph",
-                "time_loss", "travel_time", "distance_check"):
+                "time_loss", "window_speed", "distance_check"):
         assert key in rows[0], key
     assert all(float(r["distance_check"]) < 0.01 for r in rows)  # our distance and SUMO's agree
     assert all(r["guide_av"].startswith("av_") for r in rows)

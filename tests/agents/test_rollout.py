@@ -11,7 +11,7 @@ from pettingzoo.test import parallel_api_test
 
 import cosim
 from agents.fake_env import CueEnv, make_fake_env
-from agents.rollout import WorkerPool
+from agents.rollout import START_ATTEMPTS, WorkerPool
 from agents.train import episode_seed
 from cosim.config import EVAL_SEED_START
 from cosim.errors import NetError, SimulationError
@@ -105,6 +105,13 @@ def test_a_stopped_worker_times_out_and_is_replaced() -> None:
 def test_too_many_restarts_abort() -> None:
     with pytest.raises(SimulationError, match="max_restarts"):
         WorkerPool(make_fake_env(n_agents=0), workers=1, max_restarts=1)
+
+
+def test_an_env_that_never_starts_stops_the_run_after_a_few_attempts(caplog: pytest.LogCaptureFixture) -> None:
+    # Not max_restarts (100) restarts of a worker that cannot start: that fault is systematic.
+    with pytest.raises(SimulationError, match=f"could not start its env {START_ATTEMPTS} times in a row"):
+        WorkerPool(make_fake_env(n_agents=0), workers=2, max_restarts=100)
+    assert len([r for r in caplog.records if "replacing it" in r.message]) <= 2 * START_ATTEMPTS
 
 
 def test_bad_input_in_a_worker_stops_the_run_at_once(tmp_path: Path) -> None:

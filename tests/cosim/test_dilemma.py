@@ -6,10 +6,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from pettingzoo.test import parallel_api_test
+from pettingzoo.test import api_test, parallel_api_test
 
 import cosim
-from cosim.env import MergeEnv
+from cosim.merge_env import MergeEnv
 from cosim.outputs import TRIPINFO_FILE, read_tripinfo
 from cosim.policies import POLICIES
 
@@ -31,6 +31,14 @@ def test_parallel_api_on_the_dilemma() -> None:
         parallel_api_test(env, num_cycles=25)
     finally:
         env.close()
+
+
+def test_aec_form_passes_the_pettingzoo_api_test() -> None:
+    aec = cosim.env("configs/default.yaml")
+    try:
+        api_test(aec, num_cycles=25)
+    finally:
+        aec.close()
 
 
 def test_courteous_avs_let_the_merging_vehicle_in_idle_ones_do_not() -> None:

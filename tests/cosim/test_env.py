@@ -12,8 +12,8 @@ from pettingzoo.test import parallel_api_test
 
 import cosim
 from cosim.control import Action
-from cosim.env import MergeEnv
 from cosim.errors import SimulationError
+from cosim.merge_env import MergeEnv
 from cosim.metrics import EpisodeTracker
 from cosim.policies import scripted_policy
 

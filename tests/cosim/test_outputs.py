@@ -43,7 +43,8 @@ def test_parse_hand_written_outputs(tmp_path: Path) -> None:
     out = read_episode_outputs(tmp_path, duration=20.0)
     assert out.detector_count == 6 and out.throughput_vph == pytest.approx(6 * 3600 / 20)
     # b was taken off the road (a removed wreck) at 8 s: it stood for the window's last 12 s.
-    assert out.travel_time == (20.0 + 22.0) / 2 and out.time_loss == (2.0 + 16.0) / 2 and out.n_trips == 2
+    assert out.time_loss == (2.0 + 16.0) / 2 and out.n_trips == 2
+    assert out.mean_speed == pytest.approx((500.0 / 20.0 + 100.5 / 22.0) / 2)
     assert out.distance == {"a": 500.0, "b": 100.5}
 
 

@@ -37,7 +37,8 @@ from typing import Any
 
 import gymnasium
 import numpy as np
-from pettingzoo import ParallelEnv
+from pettingzoo import AECEnv, ParallelEnv
+from pettingzoo.utils.conversions import parallel_to_aec
 
 from cosim.config import Config, load_config
 from cosim.control import N_ACTIONS, decide
@@ -316,3 +317,10 @@ def parallel_env(config: str | Path | Mapping[str, Any] | Config | None = None,
     """The PettingZoo way: `cosim.parallel_env(config="configs/default.yaml", overrides={"reward.phi": 0.785})`;
     without a config, the built-in defaults on the bundled merge net."""
     return MergeEnv(load_config(config, overrides), render_mode=render_mode)
+
+
+def env(config: str | Path | Mapping[str, Any] | Config | None = None,
+        overrides: Mapping[str, Any] | list[str] | None = None, render_mode: str | None = None) -> AECEnv:
+    """The same env in PettingZoo's AEC form (agents act in turn; SUMO advances once all have acted), for
+    libraries that expect it: `cosim.env(config=..., overrides=...)`."""
+    return parallel_to_aec(parallel_env(config, overrides, render_mode))
