@@ -4,13 +4,14 @@ Contract: `atomic_path(path)` yields a temporary path beside `path` that replace
 succeeded (a reader sees the old file or the new one, never half of one), with the permissions any new file
 of the user gets (the umask's, not mkstemp's private 0600); `atomic_write_text` is its text shortcut;
 `stale_temporaries(folder, name)` lists what an interrupted atomic write of `name` left behind. `AppendCsv`
-appends rows flushed one by one, keeps an existing file's header, and drops a half-written last line left by
-an interrupted run, so runs can resume.
+appends rows flushed one by one, keeps an existing file's header (a row with a new key widens it; a missing
+key is an empty cell), and drops a half-written last line left by an interrupted run, so runs can resume.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import os
 import tempfile
 from collections.abc import Iterator, Mapping
@@ -67,8 +68,18 @@ class AppendCsv:
         new = self.fields is None
         if new:
             self.fields = list(row)
+        extra = [k for k in row if k not in self.fields]
+        if extra:  # a new column widens the file (earlier rows get empty cells): no value is dropped
+            with self.path.open(newline="") as f:
+                rows = list(csv.DictReader(f))
+            self.fields += extra
+            buf = io.StringIO()
+            widened = csv.DictWriter(buf, fieldnames=self.fields)
+            widened.writeheader()
+            widened.writerows(rows)
+            atomic_write_text(self.path, buf.getvalue())
         with self.path.open("a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=self.fields, extrasaction="ignore")
+            writer = csv.DictWriter(f, fieldnames=self.fields)
             if new:
                 writer.writeheader()
             writer.writerow(dict(row))

@@ -15,12 +15,15 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 from agents.evaluate import EVAL_SEED, PolicySpec, evaluate
 from cosim.config import load_config
+from cosim.errors import CosimError
+from cosim.files import atomic_write_text
 from cosim.metrics import format_table
 
 log = logging.getLogger("calibrate")
@@ -70,17 +73,22 @@ def main() -> None:
                              "ci": [m["ci_low"], m["ci_high"]], "met": bool(ok(m["mean"]))})
     lines = [f"# Scenario calibration: {cfg.net.file}", "",
              f"Config `{args.config}`{' with ' + ', '.join(overrides) if overrides else ''}; evaluation seeds "
-             f"{args.seed}..{args.seed + args.episodes - 1}, the same for every policy. Wall time: "
+             f"{args.seed}..{args.seed + args.episodes - 1}, the same for every policy. Wall time of this run "
+             "(episodes done before a resume not counted): "
              + ", ".join(f"{k} {v:.0f} s" for k, v in walls.items()) + ".", "", table, "",
              "| target | mean [95% CI] | met |", "|---|---|---|"]
     lines += [f"| {v['policy']}: {v['metric']} {v['target']} | {v['mean']:.1f} [{v['ci'][0]:.1f}, {v['ci'][1]:.1f}] "
               f"| {'yes' if v['met'] else 'NO'} |" for v in verdicts]
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "calibration.md").write_text("\n".join(lines) + "\n")
-    (args.out / "calibration.json").write_text(json.dumps({"summaries": summaries, "targets": verdicts,
-                                                           "wall_s": walls}, indent=2, default=str) + "\n")
+    atomic_write_text(args.out / "calibration.md", "\n".join(lines) + "\n")
+    atomic_write_text(args.out / "calibration.json", json.dumps({"summaries": summaries, "targets": verdicts,
+                                                                "wall_s": walls}, indent=2, default=str) + "\n")
     print("\n".join(lines))
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except CosimError as exc:  # bad input: one line, as from the cosim command
+        log.error("%s", exc)
+        sys.exit(2)
