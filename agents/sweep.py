@@ -59,7 +59,8 @@ def sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], b
         t0 = time.perf_counter()
         evaluate(cfg, PolicySpec(name), out / "baselines" / name, episodes=eval_episodes, seed=EVAL_SEED,
                  workers=eval_workers, trajectories=0, plots=False)
-        walls.setdefault(f"evaluate {name}", time.perf_counter() - t0)
+        _add_wall(walls, f"evaluate {name}", t0)
+    atomic_write_text(out / "walls.json", json.dumps(walls, indent=2) + "\n")
     from agents.report import write_report  # matplotlib only once there is something to plot
 
     result: dict[str, Any] = {}
@@ -102,13 +103,18 @@ def _train_and_evaluate(cfg: Config, out: Path, phi: float, seed: int, budget_mi
         log.info("training %s (budget %.1f min)", name, budget_min)
         t0 = time.perf_counter()
         result = train(run_cfg, run_dir, resume=ckpt.is_file())
-        walls[f"train {name}"] = walls.get(f"train {name}", 0.0) + time.perf_counter() - t0
+        _add_wall(walls, f"train {name}", t0)
         if result.interrupted:
             raise KeyboardInterrupt
     t0 = time.perf_counter()
     evaluate(run_cfg, PolicySpec("checkpoint", str(ckpt.resolve())), run_dir / "eval", episodes=eval_episodes,
              seed=EVAL_SEED, workers=eval_workers, trajectories=3, run_dir=run_dir, plots=False)
-    walls.setdefault(f"evaluate {name}", time.perf_counter() - t0)
+    _add_wall(walls, f"evaluate {name}", t0)
+
+
+def _add_wall(walls: dict[str, float], key: str, t0: float) -> None:
+    """Wall time [s] of a step, summed over the invocations that worked on it (an interrupted sweep resumes)."""
+    walls[key] = walls.get(key, 0.0) + time.perf_counter() - t0
 
 
 def pooled(eval_dirs: Sequence[Path], first_seed: int, episodes: int) -> tuple[list[dict[str, str]], dict]:

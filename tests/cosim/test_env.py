@@ -214,8 +214,9 @@ def test_merge_is_detected() -> None:
     assert 0 < summary["time_to_merge"] <= merged_step * env.cfg.sim.decision_period + 0.2
 
 
-def test_stuck_merging_vehicle_ends_the_episode_as_failed() -> None:
-    env = cosim.parallel_env(FREE, SMALL)
+@pytest.mark.parametrize("end_on_stuck", [True, False])
+def test_stuck_merging_vehicle_fails_the_merge(end_on_stuck: bool) -> None:
+    env = cosim.parallel_env(FREE, {**SMALL, "sim.end_on_stuck": end_on_stuck})
     try:
         env.reset(seed=1)
         libsumo.vehicle.setLaneChangeMode("merger", 0)  # it never leaves the acceleration lane
@@ -227,7 +228,8 @@ def test_stuck_merging_vehicle_ends_the_episode_as_failed() -> None:
     assert summary["merge_failed"] and not summary["merged"]
     # The AVs' own episodes did not end: they are cut (truncated), not terminated.
     assert all(trunc[a] != term[a] for a in trunc) and any(trunc.values())
-    assert summary["length"] < env.max_steps
+    # Cut once it is stuck, or (the default) it waits at the lane's end to the horizon, as SUMO's driver would.
+    assert (summary["length"] < env.max_steps) == end_on_stuck
 
 
 def test_time_limit_truncates() -> None:
