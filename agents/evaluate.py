@@ -2,8 +2,8 @@
 
 Contract:
 - `evaluate(cfg, policy, out_dir, ...)` runs `episodes` episodes with seeds `seed, seed + 1, ...`; the
-  default first seed, `EVAL_SEED` = 10,000,000, keeps evaluation disjoint from training, whose seeds count up
-  from `sim.seed` (a run would need ten million episodes to reach it). Policies: `checkpoint` (a trained
+  default first seed, `cosim.config.EVAL_SEED_START` = 10,000,000, keeps evaluation disjoint from training,
+  whose episode seeds are drawn below it (`agents.train.episode_seed`). Policies: `checkpoint` (a trained
   run; greedy argmax actions, or sampled), `sumo` (SUMO's own models drive the AVs: an all-human road),
   `idle`, `random`, `scripted` (`cosim.policies`).
 - Into `out_dir` go: `evaluation.json` (what was evaluated, with `config_sha256`, the hash of the resolved
@@ -51,7 +51,7 @@ import yaml
 from tqdm import tqdm
 
 from cosim.cli import Heartbeat, add_config_arguments
-from cosim.config import Config, load_config, parse_section
+from cosim.config import EVAL_SEED_START, Config, load_config, parse_section
 from cosim.control import Action
 from cosim.errors import ConfigError, CosimError
 from cosim.files import AppendCsv, atomic_path, atomic_write_text
@@ -61,13 +61,10 @@ from cosim.policies import POLICIES
 
 log = logging.getLogger(__name__)
 
-EVAL_SEED = 10_000_000
 CHECKPOINT = "checkpoint"  # the policy name of a trained run
 BASELINES = ("sumo", "idle", "random", "scripted", "courteous")
 # Config overrides a policy needs: the all-human baseline hands the AVs to SUMO.
 POLICY_OVERRIDES: dict[str, dict[str, Any]] = {"sumo": {"sim.av_driver": "sumo"}}
-# Leading episodes.csv columns (the env's episode summary and SUMO's follow).
-FIRST_COLUMNS = ("seed", "policy")
 
 
 @dataclass(frozen=True)
@@ -75,7 +72,7 @@ class EvaluateConfig:
     """The config's `evaluate:` section (all optional; command-line flags override)."""
 
     episodes: int = 100  # evaluation episodes
-    seed: int = EVAL_SEED  # first evaluation seed; training seeds count up from sim.seed
+    seed: int = EVAL_SEED_START  # first evaluation seed; training seeds stay below it
     greedy: bool = True  # argmax actions; false: sampled from the policy
     trajectories: int = 3  # first episodes whose per-step trajectories are kept for plots
     workers: int = 1  # worker processes
@@ -306,7 +303,7 @@ def load_trajectory(path: Path) -> dict[str, np.ndarray]:
 
 
 # -- the evaluation ------------------------------------------------------------------------------------
-def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed: int = EVAL_SEED,
+def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed: int = EVAL_SEED_START,
              workers: int = 1, trajectories: int = 3, confidence: float = 0.95, run_dir: Path | None = None,
              plots: bool = True) -> dict[str, Any]:
     """Evaluate `policy` on episodes `seed .. seed + episodes - 1` into `out_dir`; returns the summary dict
@@ -318,7 +315,8 @@ def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed
     cfg = load_config(cfg, overrides)
     meta = {"policy": policy.name, "checkpoint": policy.checkpoint, "greedy": policy.greedy,
             "net": cfg.net.file, "run": None if run_dir is None else str(Path(run_dir).resolve()),
-            "config_sha256": config_hash(cfg.to_dict()), "scenario_sha256": scenario_hash(cfg.to_dict())}
+            "config_sha256": config_hash(cfg.to_dict()), "scenario_sha256": scenario_hash(cfg.to_dict()),
+            "trained_updates": _trained_updates(policy)}
     seeds = [seed + k for k in range(episodes)]
     job = Job(cfg.to_dict(), policy, str(out_dir), frozenset(seeds[:trajectories]))
     Runner(job).close()  # bad nets and checkpoints fail here, before the folder is claimed
@@ -350,12 +348,24 @@ def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed
     return summary
 
 
+def _trained_updates(policy: PolicySpec) -> int | None:
+    """Which state of a checkpoint is evaluated: a run trained further must not resume its old evaluation."""
+    if policy.checkpoint is None:
+        return None
+    from agents.checkpoint import load_policy
+
+    updates = load_policy(policy.checkpoint)[1]["counters"].get("updates")
+    return None if updates is None else int(updates)
+
+
 def _claim(out_dir: Path, meta: dict[str, Any], cfg: Config) -> None:
     """Write evaluation.json and config.yaml, or check that an existing evaluation is the same one."""
     path = out_dir / "evaluation.json"
     if path.is_file():
         old = json.loads(path.read_text())
-        differs = [k for k in ("policy", "checkpoint", "greedy", "net") if old.get(k) != meta[k]]
+        # trained_updates: only where recorded (folders from before it was).
+        differs = [k for k in ("policy", "checkpoint", "greedy", "net", "trained_updates")
+                   if old.get(k) != meta[k] and (k in old or k != "trained_updates")]
         if differs:
             raise CosimError(f"{out_dir}: holds an evaluation with other {', '.join(differs)} "
                              f"({', '.join(f'{k}={old.get(k)!r}' for k in differs)}); choose another --out")
@@ -388,7 +398,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--episodes", type=int, help="evaluation episodes (default: evaluate.episodes, 100)")
     parser.add_argument("--net", type=Path, help="evaluate on another .net.xml (its description is found "
                                                  "beside it or inferred)")
-    parser.add_argument("--seed", type=int, help=f"first evaluation seed (default: {EVAL_SEED:,}, disjoint "
+    parser.add_argument("--seed", type=int, help=f"first evaluation seed (default: {EVAL_SEED_START:,}, disjoint "
                                                  "from training seeds)")
     parser.add_argument("--workers", type=int, help="worker processes (default: 1)")
     parser.add_argument("--sample", action="store_true", help="sample actions instead of the greedy argmax")

@@ -43,7 +43,7 @@ class RunLogger:
         cut_csv(out_dir / "episodes.csv", "episode", episodes_done)
         self.updates = AppendCsv(out_dir / "updates.csv")
         self.episodes = AppendCsv(out_dir / "episodes.csv")
-        self.tb = SummaryWriter(str(out_dir / "tb"), purge_step=updates_done + 1 if updates_done else None)
+        self.tb = SummaryWriter(str(out_dir / "tb"), purge_step=updates_done + 1)
         self.recent: deque[dict[str, Any]] = deque(maxlen=window)
 
     def update(self, row: dict[str, Any]) -> None:

@@ -199,7 +199,7 @@ class MultiAgentPolicy:
                                     ("clip_fraction", terms.clip_fraction), ("grad_norm", grad_norm)):
                     totals[name] = totals.get(name, 0.0) + float(value.detach())
         with torch.no_grad():
-            predicted = scale(b.values[sel]).to(self.device)
+            predicted = values[flat].to(self.device)  # as the critic predicted them, before this update's vn stats
             ret_dev = ret.to(self.device)
             explained = 1 - (ret_dev - predicted).var() / ret_dev.var() if m > 1 and ret_dev.var() > 0 else 0.0
         return {**{k: v / n_steps for k, v in totals.items()}, "batch": float(m), "advantage": float(adv.mean()),

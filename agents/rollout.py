@@ -248,7 +248,10 @@ class WorkerPool:
             self.obs = self._shared(shape)  # (W, N, F, C, H, W)
             self.final = self._shared(shape)
             for w in range(workers):
-                self._attach(w)
+                try:
+                    self._attach(w)
+                except WorkerFailure as exc:  # died between its spec and its slots
+                    self._replace(w, exc)
         except BaseException:
             self.close()
             raise
@@ -273,12 +276,13 @@ class WorkerPool:
         self.workers[w].recv(self.timeout)
 
     def _recv_spec(self, w: int) -> EnvSpec:
-        for _ in range(START_ATTEMPTS):
+        for attempt in range(1, START_ATTEMPTS + 1):
             try:
                 return self.workers[w].recv(max(self.timeout, START_TIMEOUT))
             except WorkerFailure as exc:
                 reason = exc
-                self._replace(w, exc)
+                if attempt < START_ATTEMPTS:
+                    self._replace(w, exc)
         raise SimulationError(f"rollout worker {w} could not start its env {START_ATTEMPTS} times in a row; "
                               f"last failure: {reason}")
 

@@ -22,6 +22,7 @@ import json
 import logging
 import math
 import shlex
+import shutil
 import sys
 import time
 from collections.abc import Sequence
@@ -30,9 +31,9 @@ from typing import Any
 
 import numpy as np
 
-from agents.evaluate import EVAL_SEED, PolicySpec, evaluate, read_rows
+from agents.evaluate import PolicySpec, evaluate, read_rows
 from cosim.cli import add_config_arguments
-from cosim.config import Config, load_config
+from cosim.config import EVAL_SEED_START, Config, load_config
 from cosim.errors import ConfigError
 from cosim.files import atomic_write_text
 from cosim.metrics import format_table, rate_ci, summarize
@@ -57,7 +58,7 @@ def sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], b
     walls: dict[str, float] = _load_walls(out)
     for name in baselines:
         t0 = time.perf_counter()
-        evaluate(cfg, PolicySpec(name), out / "baselines" / name, episodes=eval_episodes, seed=EVAL_SEED,
+        evaluate(cfg, PolicySpec(name), out / "baselines" / name, episodes=eval_episodes, seed=EVAL_SEED_START,
                  workers=eval_workers, trajectories=0, plots=False)
         _add_wall(walls, f"evaluate {name}", t0)
     atomic_write_text(out / "walls.json", json.dumps(walls, indent=2) + "\n")
@@ -106,9 +107,10 @@ def _train_and_evaluate(cfg: Config, out: Path, phi: float, seed: int, budget_mi
         _add_wall(walls, f"train {name}", t0)
         if result.interrupted:
             raise KeyboardInterrupt
+        shutil.rmtree(run_dir / "eval", ignore_errors=True)  # an evaluation of an earlier state of the run
     t0 = time.perf_counter()
     evaluate(run_cfg, PolicySpec("checkpoint", str(ckpt.resolve())), run_dir / "eval", episodes=eval_episodes,
-             seed=EVAL_SEED, workers=eval_workers, trajectories=3, run_dir=run_dir, plots=False)
+             seed=EVAL_SEED_START, workers=eval_workers, trajectories=3, run_dir=run_dir, plots=False)
     _add_wall(walls, f"evaluate {name}", t0)
 
 

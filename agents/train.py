@@ -3,11 +3,11 @@
 Contract: `train(cfg, out_dir, ...)` trains the AVs of `cfg` until `train.episodes` episodes have finished in
 total or the `train.budget_min` wall-clock budget is spent (both over the whole run, resumes included),
 writing into `out_dir`: `config.yaml` (the resolved config), `checkpoint.pt` (every `train.checkpoint_every`
-updates, at the end, and on Ctrl-C or SIGTERM), `updates.csv`, `episodes.csv` and TensorBoard files under
-`tb/`. `resume=True` continues the run in `out_dir` from its checkpoint: same parameters, optimizer and
-value-normaliser state, RNG states and counters; episode seeds follow from (seed, update, worker), so a
-resumed run continues the same sequence as an uninterrupted one. It returns a `TrainResult`.
-`add_arguments` / `run` are the argparse pair behind `cosim train`.
+updates, at the end, and on Ctrl-C or SIGTERM, which stop the run after the update in progress),
+`updates.csv`, `episodes.csv` and TensorBoard files under `tb/`. `resume=True` continues the run in `out_dir`
+from its checkpoint: same parameters, optimizer and value-normaliser state, RNG states and counters; episode
+seeds follow from (seed, update, worker), so a resumed run continues the same sequence as an uninterrupted one.
+It returns a `TrainResult`. `add_arguments` / `run` are the argparse pair behind `cosim train`.
 
 One update: every worker plays one whole episode (`agents.collect`), then the network(s) learn from every
 sample the scheme allows (`agents.multiagent`). Samples of absent agents and episodes lost to a worker
@@ -21,7 +21,9 @@ import dataclasses
 import functools
 import logging
 import random
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,8 +68,8 @@ class TrainResult:
     samples: int  # valid agent-samples collected, over the whole run
     restarts: int  # rollout worker restarts, over the whole run
     lost_episodes: int  # episodes dropped because their worker failed
-    interrupted: bool  # stopped by Ctrl-C or SIGTERM (a checkpoint was written)
-    recent_return: float  # mean per-agent episode return over the last 100 episodes
+    interrupted: bool  # stopped by Ctrl-C or SIGTERM (the checkpoint holds the last complete update)
+    recent_return: float  # mean per-agent episode return over the last 100 episodes of this call
     wall_s: float  # [s] of this call
     rollout_s: float  # [s] of this call spent collecting (env steps + acting)
     update_s: float  # [s] of this call spent in gradient updates
@@ -132,18 +134,48 @@ def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: i
     run = _Run.open(cfg, Path(out_dir), workers, episodes, budget_min, resume, device, env_factory,
                     allow_config_change, progress)
     try:
-        while not run.finished():
-            seeds = run.next_seeds()
-            got = run.collect(seeds)
-            stats = run.learn()
-            run.log(got, stats)
-            run.maybe_checkpoint()
-    except KeyboardInterrupt:
+        with StopRequest() as stop:
+            while not run.finished() and not stop.requested:
+                run.begin_update()
+                seeds = run.next_seeds()
+                got = run.collect(seeds)
+                stats = run.learn()
+                run.log(got, stats)
+                run.end_update()
+                run.maybe_checkpoint()
+        run.interrupted = stop.requested
+    except KeyboardInterrupt:  # a second Ctrl-C, or one outside the loop
         run.interrupted = True
-        log.warning("interrupted at update %d; writing a checkpoint to %s", run.counters["updates"], run.ckpt_path)
     finally:
         run.close()
     return run.result()
+
+
+class StopRequest:
+    """SIGINT / SIGTERM during training ask to stop after the update in progress, so that the final checkpoint
+    is an update boundary and a resume continues the same sequence; a second signal stops at once."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.requested = False
+        self.previous: dict[int, Any] = {}
+
+    def __enter__(self) -> StopRequest:
+        if threading.current_thread() is threading.main_thread():  # only there can Python handle signals
+            self.previous = {sig: signal.signal(sig, self._handle) for sig in self.SIGNALS}
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self.previous.items():
+            signal.signal(sig, handler)
+
+    def _handle(self, signum: int, frame: object) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        log.warning("%s: stopping after the update in progress (send it again to stop at once)",
+                    signal.Signals(signum).name)
 
 
 class _Run:
@@ -223,6 +255,8 @@ class _Run:
             raise
         self.restarts_before = self.counters["restarts"]
         self.interrupted = False
+        self.boundary_rng: dict[str, Any] | None = None  # RNG states at the start of the update in progress
+        self.learning = False  # inside the update's learning and logging, which a checkpoint must not cut
         self.start = time.perf_counter()
         self.start_samples = self.counters["samples"]
         self.timing = {"rollout": 0.0, "update": 0.0}
@@ -242,6 +276,15 @@ class _Run:
     def finished(self) -> bool:
         return self.progress() >= 1.0
 
+    def begin_update(self) -> None:
+        # Collecting changes nothing but the RNG states: a stop before learning can still checkpoint the run
+        # as it was at this boundary.
+        self.boundary_rng = rng_state()
+        self.learning = False
+
+    def end_update(self) -> None:
+        self.boundary_rng, self.learning = None, False
+
     def next_seeds(self) -> list[int]:
         """One episode seed per worker of this update; fewer workers when fewer episodes remain."""
         n = min(self.tc.workers, self.tc.episodes - self.counters["episodes"])
@@ -255,6 +298,7 @@ class _Run:
         return got
 
     def learn(self) -> dict[str, float]:
+        self.learning = True
         t0 = time.perf_counter()
         update = self.counters["updates"]
         stats = self.policy.update(self.batch, self.tc, update, self.progress())
@@ -305,7 +349,8 @@ class _Run:
     def checkpoint(self) -> None:
         save_checkpoint(self.ckpt_path, {
             "spec": self.spec, "policy": self.policy.state_dict(),
-            "counters": {**self.counters, "train_s": self.train_s}, "rng": rng_state(),
+            "counters": {**self.counters, "train_s": self.train_s},
+            "rng": rng_state() if self.boundary_rng is None else self.boundary_rng,
             "train": dataclasses.asdict(self.tc), "config": self.cfg.to_dict(), "phis": list(self.cfg.phis())})
 
     def close(self) -> None:
@@ -313,6 +358,12 @@ class _Run:
         self.pool.close()
         self.logger.close()
         self.counters["restarts"] = self.restarts_before + self.pool.restarts
+        if self.learning:  # stopped half-way through an update: its parameters are neither before nor after it
+            log.warning("stopped during update %d: keeping the last checkpoint (%s)", self.counters["updates"] + 1,
+                        self.ckpt_path)
+            return
+        if self.interrupted:
+            log.warning("stopped at update %d; writing a checkpoint to %s", self.counters["updates"], self.ckpt_path)
         self.checkpoint()
 
     def result(self) -> TrainResult:

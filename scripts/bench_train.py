@@ -23,6 +23,7 @@ from typing import Any
 import torch
 
 from agents.config import use_bf16
+from agents.evaluate import read_rows
 from agents.losses import actor_critic_loss
 from agents.model import ActorCritic
 from agents.train import train
@@ -39,14 +40,18 @@ def bench_workers(args: argparse.Namespace, algo: str, preset: str) -> list[dict
         with tempfile.TemporaryDirectory() as tmp:
             res = train(cfg, Path(tmp) / "run", workers=workers, budget_min=args.seconds / 60.0, device=args.device,
                         progress=False)
+            # How far it learnt in that time: the crash rate of its last 100 training episodes (sampled actions).
+            last = [float(r["crashed"]) for r in read_rows(Path(tmp) / "run" / "episodes.csv")[-100:]]
         busy = res.rollout_s + res.update_s
         rows.append({"algo": algo, "preset": preset, "workers": workers, "episodes": res.episodes,
                      "updates": res.updates, "samples": res.new_samples, "wall_s": round(res.wall_s, 1),
                      "samples_per_s": round(res.new_samples / res.wall_s, 1),
-                     "rollout_share": round(res.rollout_s / busy, 3), "update_share": round(res.update_s / busy, 3)})
-        log.info("%s, %s preset, W=%d: %.0f agent-samples/s (rollout %.0f%% / update %.0f%%), %d episodes in %.0f s",
-                 algo, preset, workers, rows[-1]["samples_per_s"], 100 * rows[-1]["rollout_share"],
-                 100 * rows[-1]["update_share"], res.episodes, res.wall_s)
+                     "rollout_share": round(res.rollout_s / busy, 3), "update_share": round(res.update_s / busy, 3),
+                     "last_100_crash": round(sum(last) / max(len(last), 1), 2)})
+        log.info("%s, %s preset, W=%d: %.0f agent-samples/s (rollout %.0f%% / update %.0f%%), %d episodes in %.0f s, "
+                 "crash rate of the last 100 %.2f", algo, preset, workers, rows[-1]["samples_per_s"],
+                 100 * rows[-1]["rollout_share"], 100 * rows[-1]["update_share"], res.episodes, res.wall_s,
+                 rows[-1]["last_100_crash"])
     return rows
 
 

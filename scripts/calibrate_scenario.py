@@ -20,8 +20,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from agents.evaluate import EVAL_SEED, PolicySpec, evaluate
-from cosim.config import load_config
+from agents.evaluate import PolicySpec, evaluate
+from cosim.config import EVAL_SEED_START, load_config
 from cosim.errors import CosimError
 from cosim.files import atomic_write_text
 from cosim.metrics import format_table
@@ -47,7 +47,7 @@ def main() -> None:
     parser.add_argument("--net", type=Path, default=None, help="another .net.xml (description beside it or inferred)")
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--seed", type=int, default=EVAL_SEED, help="first evaluation seed")
+    parser.add_argument("--seed", type=int, default=EVAL_SEED_START, help="first evaluation seed")
     parser.add_argument("--policies", nargs="+", choices=POLICIES, default=list(POLICIES))
     parser.add_argument("--out", type=Path, default=Path("runs/calibration"))
     args = parser.parse_args()

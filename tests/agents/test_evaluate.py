@@ -138,11 +138,12 @@ def test_workers_give_the_same_rows(tmp_path: Path) -> None:
     assert [r["mean_distance"] for r in one] == [r["mean_distance"] for r in two]
 
 
-def _tiny_checkpoint(path: Path, obs_shape: tuple[int, ...]) -> None:
+def _tiny_checkpoint(path: Path, obs_shape: tuple[int, ...], updates: int = 1) -> None:
     net = ActorCritic(obs_shape, 5, feature_dim=8, head_hidden=8)
     spec = {"agents": [f"av_{i}" for i in range(4)], "obs_shape": list(obs_shape), "obs_dtype": "float32",
             "n_actions": 5, "shared_policy": True, "feature_dim": 8, "head_hidden": 8}
-    save_checkpoint(path, {"spec": spec, "policy": {"nets": [net.state_dict()]}, "counters": {}, "rng": {}})
+    save_checkpoint(path, {"spec": spec, "policy": {"nets": [net.state_dict()]}, "counters": {"updates": updates},
+                           "rng": {}})
 
 
 def test_act_agents_batches_agents_sharing_a_network() -> None:
@@ -173,6 +174,11 @@ def test_checkpoint_policy_and_a_mismatched_one(tmp_path: Path) -> None:
     assert summary["episodes"] == 2 and summary["greedy"] is False
     actions = read_rows(tmp_path / "ev" / "episodes.csv")[0]["guide_actions"].split()
     assert actions and all(0 <= int(a) < 5 for a in actions)
+    # The same checkpoint file trained further: its old evaluation is not resumed as if it were the new one's.
+    _tiny_checkpoint(good, shape, updates=9)
+    with pytest.raises(CosimError, match="other trained_updates"):
+        evaluate(cfg, PolicySpec(CHECKPOINT, str(good), greedy=False), tmp_path / "ev", episodes=4, seed=5,
+                 trajectories=0, plots=False)
     with pytest.raises(CheckpointError, match="observations of shape"):
         evaluate(cfg, PolicySpec(CHECKPOINT, str(bad)), tmp_path / "ev_bad", episodes=1, plots=False)
     assert not (tmp_path / "ev_bad" / "evaluation.json").exists()  # a failed start claims no folder

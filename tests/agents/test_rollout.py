@@ -111,7 +111,7 @@ def test_an_env_that_never_starts_stops_the_run_after_a_few_attempts(caplog: pyt
     # Not max_restarts (100) restarts of a worker that cannot start: that fault is systematic.
     with pytest.raises(SimulationError, match=f"could not start its env {START_ATTEMPTS} times in a row"):
         WorkerPool(make_fake_env(n_agents=0), workers=2, max_restarts=100)
-    assert len([r for r in caplog.records if "replacing it" in r.message]) <= 2 * START_ATTEMPTS
+    assert len([r for r in caplog.records if "replacing it" in r.message]) == START_ATTEMPTS - 1
 
 
 def test_bad_input_in_a_worker_stops_the_run_at_once(tmp_path: Path) -> None:
@@ -125,4 +125,5 @@ def test_training_seeds_stay_below_evaluation_seeds() -> None:
     seeds = {episode_seed(s, u, w) for s in (0, 7, 10_000_123) for u in range(5) for w in range(4)}
     assert len(seeds) == 60
     assert all(0 <= s < EVAL_SEED_START for s in seeds)
-    assert episode_seed(3, 10, 2) == episode_seed(3, 10, 2)
+    # Fixed across processes and versions: a run resumed elsewhere continues with the same episodes.
+    assert episode_seed(3, 10, 2) == 1206495

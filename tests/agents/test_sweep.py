@@ -26,6 +26,10 @@ def test_tiny_sweep_runs_end_to_end_and_resumes(tmp_path: Path, monkeypatch: pyt
         assert (out / figure).stat().st_size > 1000
     data = json.loads((out / "sweep.json").read_text())
     assert data["episodes"] == {"idle": 4, "courteous": 4, "phi=0.000 (egoistic)": 4, "phi=0.785 (altruistic)": 4}
+    holds = [(c["claim"][:3], c["holds"]) for c in data["claims"]]
+    # Scripted was not evaluated (nothing to hold (1) against), 4 episodes are not the 300 that (2) needs, and
+    # (4) is a figure, not a test.
+    assert holds == [("(1)", False), ("(1)", False), ("(2)", False), ("(3)", holds[3][1]), ("(4)", None)]
     runs = sorted((out / "runs").iterdir())
     assert [r.name for r in runs] == ["phi_0.0000_seed_0", "phi_0.7854_seed_0"]
     for r in runs:  # trained within the budget, with its angle, evaluated on the evaluation seeds

@@ -2,6 +2,8 @@
 
 import argparse
 import csv
+import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -125,21 +127,46 @@ def test_worker_failure_restarts_and_the_episode_is_not_counted(tmp_path: Path) 
     assert len(episode_rows(run)) == result.episodes == 8
 
 
-def test_ctrl_c_writes_a_checkpoint(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def signal_during_update(monkeypatch: pytest.MonkeyPatch, at: int, times: int = 1) -> None:
+    """Ctrl-C `times` times while update number `at` (1-based) is learning."""
     calls = {"n": 0}
     original = MultiAgentPolicy.update
 
-    def interrupt_on_third(*args: object, **kwargs: object) -> dict[str, float]:
+    def update(*args: object, **kwargs: object) -> dict[str, float]:
         calls["n"] += 1
-        if calls["n"] == 3:
-            raise KeyboardInterrupt
+        if calls["n"] == at:
+            for _ in range(times):
+                os.kill(os.getpid(), signal.SIGINT)
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(MultiAgentPolicy, "update", interrupt_on_third)
-    result = train(cfg_with(), tmp_path / "run", workers=1, episodes=1000, env_factory=make_fake_env(n_agents=2),
-                   progress=False)
-    assert result.interrupted and result.updates == 2
-    assert read_checkpoint(result.checkpoint)["counters"]["updates"] == 2
+    monkeypatch.setattr(MultiAgentPolicy, "update", update)
+
+
+def test_ctrl_c_finishes_the_update_checkpoints_and_resumes_bitwise(tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    cfg = cfg_with(algo="ppo")
+    whole = train(cfg, tmp_path / "whole", workers=2, episodes=12, env_factory=make_fake_env(n_agents=2),
+                  progress=False)
+    signal_during_update(monkeypatch, at=3)
+    cut = train(cfg, tmp_path / "cut", workers=2, episodes=12, env_factory=make_fake_env(n_agents=2), progress=False)
+    assert cut.interrupted and cut.updates == 3
+    assert read_checkpoint(cut.checkpoint)["counters"]["updates"] == 3
+    monkeypatch.undo()
+    resumed = train(cfg, tmp_path / "cut", workers=2, episodes=12, resume=True,
+                    env_factory=make_fake_env(n_agents=2), progress=False)
+    assert not resumed.interrupted and resumed.updates == whole.updates
+    a, b = read_checkpoint(whole.checkpoint)["policy"], read_checkpoint(resumed.checkpoint)["policy"]
+    assert all(torch.equal(v, b["nets"][0][k]) for k, v in a["nets"][0].items())
+    assert episode_rows(tmp_path / "whole") == episode_rows(tmp_path / "cut")
+
+
+def test_a_second_ctrl_c_stops_at_once_and_keeps_the_last_whole_checkpoint(tmp_path: Path,
+                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    signal_during_update(monkeypatch, at=4, times=2)
+    result = train(cfg_with(checkpoint_every=2), tmp_path / "run", workers=1, episodes=100,
+                   env_factory=make_fake_env(n_agents=2), progress=False)
+    assert result.interrupted
+    assert read_checkpoint(result.checkpoint)["counters"]["updates"] == 2  # not the half-done update 4
 
 
 def test_cli_arguments_reach_the_trainer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
