@@ -18,7 +18,7 @@ from agents.model import ActorCritic
 from agents.multiagent import MultiAgentPolicy
 from agents.train import add_arguments, run, train
 from cosim.config import load_config
-from cosim.errors import ConfigError
+from cosim.errors import ConfigError, SimulationError
 
 SMALL = {"feature_dim": 32, "head_hidden": 32, "optimizer": "adam", "lr": 0.002, "disseminate_every": 4, "gamma": 0.5,
          "checkpoint_every": 10, "seed": 3, "precision": "float32"}
@@ -125,6 +125,18 @@ def test_worker_failure_restarts_and_the_episode_is_not_counted(tmp_path: Path) 
     assert flag.exists()
     assert result.restarts == 1 and result.lost_episodes == 1
     assert len(episode_rows(run)) == result.episodes == 8
+
+
+def test_too_many_worker_failures_stop_the_run_with_a_checkpoint(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    with pytest.raises(SimulationError, match="exceed train.max_restarts = 0"):
+        train(cfg_with(max_restarts=0), run, workers=2, episodes=8, progress=False,
+              env_factory=make_fake_env(n_agents=2, fail_once_file=str(tmp_path / "failed"), fail_at_step=3))
+    counters = read_checkpoint(run / "checkpoint.pt")["counters"]  # the run at its last update boundary
+    assert counters["episodes"] == 2 * counters["updates"] < 8
+    result = train(cfg_with(max_restarts=0), run, workers=2, episodes=8, resume=True, progress=False,
+                   env_factory=make_fake_env(n_agents=2))
+    assert result.episodes == 8 and result.lost_episodes == 0
 
 
 def signal_during_update(monkeypatch: pytest.MonkeyPatch, at: int, times: int = 1) -> None:
