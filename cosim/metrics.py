@@ -20,8 +20,6 @@ Contract:
   distance, the guide AV (nearest the merging vehicle when it merges, else at its last appearance) and the
   guide's actions. `MergeEnv` owns one (its `infos["episode"]` summary is its row); with `record=True` it
   also keeps per-step trajectories (`trajectory()`) for plots.
-- `crossings(trajectory, s)` counts vehicles whose front crosses chainage `s`, the snapshot-side
-  counterpart of an induction loop count.
 """
 
 from __future__ import annotations
@@ -187,21 +185,6 @@ def guide_av(snap: Snapshot) -> str | None:
     m = merger[0]
     d2 = (snap.x[avs] - snap.x[m]) ** 2 + (snap.y[avs] - snap.y[m]) ** 2
     return snap.ids[int(avs[np.argmin(d2)])]
-
-
-def crossings(trajectory: Mapping[str, np.ndarray], s: float) -> int:
-    """Vehicles whose front crosses chainage `s` (from below) between two recorded steps of `trajectory`.
-
-    Gaps (junction-internal edges, NaN) are bridged by the vehicle's last known chainage."""
-    count = 0
-    vehicle, chain, step = trajectory["vehicle"], trajectory["s"], trajectory["step"]
-    for v in np.unique(vehicle):
-        mine = vehicle == v
-        order = np.argsort(step[mine], kind="stable")
-        path = chain[mine][order]
-        path = path[np.isfinite(path)]
-        count += int(np.any((path[:-1] < s) & (path[1:] >= s)))
-    return count
 
 
 # -- one episode's bookkeeping -------------------------------------------------------------------------

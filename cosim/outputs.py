@@ -42,7 +42,6 @@ class DetectorSite:
     edge: str  # the last highway edge
     lanes: tuple[str, ...]  # lane ids, one loop each
     pos: float  # [m] from the edge's start
-    chainage: float  # [m] the same place on the highway axis (cosim.metrics.Chainage)
 
 
 def detector_site(desc: NetDescription, road: RoadNet, offset: float) -> DetectorSite:
@@ -50,7 +49,7 @@ def detector_site(desc: NetDescription, road: RoadNet, offset: float) -> Detecto
     length = road.edge_length(edge)
     pos = min(max(offset, 0.0), max(length - 0.5, 0.0))
     lanes = tuple(lane.id for lane in road.edge(edge).lanes)
-    return DetectorSite(edge, lanes, pos, desc.highway_offsets(road)[edge] + pos)
+    return DetectorSite(edge, lanes, pos)
 
 
 def episode_folder(root: Path, seed: int, busy: Path | None = None) -> Path:

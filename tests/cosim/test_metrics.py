@@ -12,7 +12,6 @@ from cosim.episode import MergeStatus, MergeZone
 from cosim.metrics import (
     Chainage,
     EpisodeTracker,
-    crossings,
     format_table,
     guide_av,
     mean_ci,
@@ -165,14 +164,6 @@ def test_tracker_merge_is_the_envs_merge_status() -> None:
     tr.observe(_snap(1.1, ids, kinds, [20, 50], [0, 1], [1, 0], [20, 9]), {"av_0": 1},
                MergeStatus(row=1, merged=True, stuck=False, crashed=False))
     assert tr.row()["merged"] and tr.row()["time_to_merge"] == pytest.approx(1.1)
-
-
-def test_crossings_counts_front_passes() -> None:
-    traj = {"vehicle": np.array([0, 1, 0, 1, 0, 1, 2]), "step": np.array([0, 0, 1, 1, 2, 2, 2]),
-            "s": np.array([90.0, 50.0, np.nan, 99.0, 120.0, 100.0, 150.0])}
-    # vehicle 0 crosses through a gap (NaN), vehicle 1 reaches exactly 100, vehicle 2 appears past it
-    assert crossings(traj, 100.0) == 2
-    assert crossings(traj, 10.0) == 0
 
 
 def test_chainage_of_the_real_net(two_lane_net: Path) -> None:
