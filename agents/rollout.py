@@ -175,6 +175,32 @@ def _map(path: str, shape: tuple[int, ...], dtype: str, mode: str) -> np.ndarray
     return np.memmap(path, dtype=dtype, mode=mode, shape=shape)
 
 
+BACKENDS = ("local", "ray")
+
+
+@dataclass(frozen=True)
+class Backend:
+    """Where rollout workers run: `local` processes (`WorkerPool`) or Ray actors (`agents.ray_pool`)."""
+
+    name: str = "local"  # one of BACKENDS
+    ray_address: str | None = None  # ray: a cluster to join ("auto" | HOST:PORT); None: a local Ray
+
+    def check(self) -> None:
+        if self.name not in BACKENDS:
+            raise ConfigError(f"--backend {self.name}: expected one of {list(BACKENDS)}")
+        if self.ray_address is not None and self.name != "ray":
+            raise ConfigError(f"--ray-address {self.ray_address}: only with --backend ray")
+
+    def pool(self, env_factory: EnvFactory, workers: int, max_restarts: int, timeout: float) -> Any:
+        """A started pool of `workers` envs (`WorkerPool`'s interface)."""
+        self.check()
+        if self.name == "ray":
+            from agents.ray_pool import RayWorkerPool  # Ray only where it is asked for
+
+            return RayWorkerPool(env_factory, workers, max_restarts, timeout, self.ray_address)
+        return WorkerPool(env_factory, workers, max_restarts, timeout)
+
+
 class WorkerFailure(Exception):
     """A worker's env raised, its process died, or it stayed silent (internal: the pool replaces it)."""
 
@@ -258,6 +284,10 @@ class WorkerPool:
 
     def __len__(self) -> int:
         return len(self.workers)
+
+    def pid(self, w: int) -> int:
+        """The process id of worker w."""
+        return int(self.workers[w].proc.pid or 0)
 
     def _start(self, w: int) -> _Worker:
         return _Worker(self.ctx, self.env_factory, f"rollout-{w}", self._tmp_root)

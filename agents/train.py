@@ -48,7 +48,7 @@ from agents.collect import Collected, collect
 from agents.config import TrainConfig, check_device, train_config
 from agents.logs import RunLogger
 from agents.multiagent import Batch, MultiAgentPolicy
-from agents.rollout import EnvFactory, WorkerPool
+from agents.rollout import BACKENDS, Backend, EnvFactory
 from cosim.cli import Heartbeat, add_config_arguments
 from cosim.config import EVAL_SEED_START, Config, load_config
 from cosim.errors import ConfigError
@@ -129,10 +129,10 @@ def _default_env_factory(cfg: Config) -> EnvFactory:
 def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: int | None = None,
           budget_min: float | None = None, resume: bool = False, device: str | None = None,
           env_factory: EnvFactory | None = None, progress: bool | None = None,
-          allow_config_change: bool = False) -> TrainResult:
+          allow_config_change: bool = False, backend: str = "local", ray_address: str | None = None) -> TrainResult:
     """Train (or, with `resume`, continue training) the AVs of `cfg` into `out_dir` (see module doc)."""
     run = _Run.open(cfg, Path(out_dir), workers, episodes, budget_min, resume, device, env_factory,
-                    allow_config_change, progress)
+                    allow_config_change, progress, Backend(backend, ray_address))
     try:
         with StopRequest() as stop:
             while not run.finished() and not stop.requested:
@@ -184,8 +184,10 @@ class _Run:
     @classmethod
     def open(cls, cfg: Config, out_dir: Path, workers: int | None, episodes: int | None, budget_min: float | None,
              resume: bool, device: str | None, env_factory: EnvFactory | None, allow_change: bool = False,
-             progress: bool | None = None) -> _Run:
+             progress: bool | None = None, backend: Backend | None = None) -> _Run:
         """Every check on the input and the run folder, before anything in the folder changes."""
+        backend = backend or Backend()
+        backend.check()
         tc = train_config(cfg)
         tc = dataclasses.replace(tc, workers=workers or tc.workers, episodes=episodes or tc.episodes,
                                  budget_min=tc.budget_min if budget_min is None else budget_min,
@@ -206,11 +208,11 @@ class _Run:
             raise ConfigError(f"--resume {out_dir}: the config differs from the run's ({listed}); resume with the "
                               "run's config (cosim train --config RUN/config.yaml), or pass --allow-config-change "
                               "to continue with the new one (recorded in RUN/config_changes.yaml)")
-        return cls(cfg, tc, out_dir, payload, env_factory or _default_env_factory(cfg), changes, progress)
+        return cls(cfg, tc, out_dir, payload, env_factory or _default_env_factory(cfg), changes, progress, backend)
 
     def __init__(self, cfg: Config, tc: TrainConfig, out_dir: Path, payload: dict[str, Any] | None,
                  env_factory: EnvFactory, changes: dict[str, tuple[Any, Any]] | None = None,
-                 progress: bool | None = None) -> None:
+                 progress: bool | None = None, backend: Backend | None = None) -> None:
         self.cfg, self.tc, self.out_dir = cfg, tc, out_dir
         self.ckpt_path = out_dir / CHECKPOINT_NAME
         self.counters = {k: 0 for k in COUNTERS}
@@ -223,7 +225,7 @@ class _Run:
         random.seed(tc.seed)
         np.random.seed(tc.seed)
         torch.manual_seed(tc.seed)
-        self.pool = WorkerPool(env_factory, tc.workers, max_restarts=tc.max_restarts, timeout=tc.step_timeout)
+        self.pool = (backend or Backend()).pool(env_factory, tc.workers, tc.max_restarts, tc.step_timeout)
         try:
             spec = self.pool.spec
             self.agents = spec.agents
@@ -387,7 +389,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                         help="with --resume: continue although the config differs from the run's (the differences "
                              "are recorded in RUN/config_changes.yaml)")
     parser.add_argument("--device", default=None, help="cpu | cuda | cuda:N (default: train.device)")
+    add_backend_arguments(parser)
     return parser
+
+
+def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
+    """--backend / --ray-address: where the rollout workers run (training and `cosim sweep`)."""
+    parser.add_argument("--backend", choices=BACKENDS, default="local",
+                        help="rollout workers as local processes (default) or as Ray actors (pip install -e "
+                             "\".[ray]\"); the learner stays in this process either way")
+    parser.add_argument("--ray-address", default=None, metavar="auto|HOST:PORT",
+                        help="with --backend ray: the Ray cluster to join (auto: the one `ray start` runs here); "
+                             "default: start a local Ray")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -401,7 +414,8 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, overrides=args.overrides)
     out = args.out or Path("runs") / Path(args.config).stem
     result = train(cfg, out, workers=args.workers, episodes=args.episodes, budget_min=args.budget_min,
-                   resume=args.resume, device=args.device, allow_config_change=args.allow_config_change)
+                   resume=args.resume, device=args.device, allow_config_change=args.allow_config_change,
+                   backend=args.backend, ray_address=args.ray_address)
     log.info("trained %d episodes (%d updates, %d agent-samples, %.0f s) into %s", result.episodes, result.updates,
              result.samples, result.train_s, result.out_dir)
     return 130 if result.interrupted else 0

@@ -3,6 +3,7 @@ forward+backward time of the network at the default and paper presets, float32 v
 
     python scripts/bench_train.py                              # configs/default.yaml on real SUMO, A2C and PPO
     python scripts/bench_train.py --workers 1 2 4 8 --seconds 60 --algo ppo
+    python scripts/bench_train.py --backend local ray --workers 2 --algo ppo --no-network   # Ray's overhead
     python scripts/bench_train.py --device cuda --paper        # on a GPU: the paper preset's training figure too
 
 Each measurement trains a fresh run for `--seconds` of training wall time (`train.budget_min`) and reports
@@ -13,6 +14,8 @@ acting, moving observations) and learning. Results are logged and, with `--json`
 from __future__ import annotations
 
 import argparse
+import csv
+import itertools
 import json
 import logging
 import tempfile
@@ -23,9 +26,9 @@ from typing import Any
 import torch
 
 from agents.config import use_bf16
-from agents.evaluate import read_rows
 from agents.losses import actor_critic_loss
 from agents.model import ActorCritic
+from agents.rollout import BACKENDS
 from agents.train import train
 from cosim.config import OBSERVATION_PRESETS, load_config
 
@@ -36,20 +39,21 @@ def bench_workers(args: argparse.Namespace, algo: str, preset: str) -> list[dict
     cfg = load_config(args.config, overrides=[*args.overrides, f"observation.preset={preset}", f"train.algo={algo}",
                                               f"train.precision={args.precision}"])
     rows = []
-    for workers in args.workers:
+    for backend, workers in itertools.product(args.backend, args.workers):
         with tempfile.TemporaryDirectory() as tmp:
             res = train(cfg, Path(tmp) / "run", workers=workers, budget_min=args.seconds / 60.0, device=args.device,
-                        progress=False)
+                        progress=False, backend=backend)
             # How far it learnt in that time: the crash rate of its last 100 training episodes (sampled actions).
-            last = [float(r["crashed"]) for r in read_rows(Path(tmp) / "run" / "episodes.csv")[-100:]]
+            with (Path(tmp) / "run" / "episodes.csv").open(newline="") as f:
+                last = [float(r["crashed"]) for r in list(csv.DictReader(f))[-100:]]
         busy = res.rollout_s + res.update_s
-        rows.append({"algo": algo, "preset": preset, "workers": workers, "episodes": res.episodes,
+        rows.append({"algo": algo, "preset": preset, "backend": backend, "workers": workers, "episodes": res.episodes,
                      "updates": res.updates, "samples": res.new_samples, "wall_s": round(res.wall_s, 1),
                      "samples_per_s": round(res.new_samples / res.wall_s, 1),
                      "rollout_share": round(res.rollout_s / busy, 3), "update_share": round(res.update_s / busy, 3),
                      "last_100_crash": round(sum(last) / max(len(last), 1), 2)})
-        log.info("%s, %s preset, W=%d: %.0f agent-samples/s (rollout %.0f%% / update %.0f%%), %d episodes in %.0f s, "
-                 "crash rate of the last 100 %.2f", algo, preset, workers, rows[-1]["samples_per_s"],
+        log.info("%s, %s preset, %s W=%d: %.0f agent-samples/s (rollout %.0f%% / update %.0f%%), %d episodes in "
+                 "%.0f s, crash rate of the last 100 %.2f", algo, preset, backend, workers, rows[-1]["samples_per_s"],
                  100 * rows[-1]["rollout_share"], 100 * rows[-1]["update_share"], res.episodes, res.wall_s,
                  rows[-1]["last_100_crash"])
     return rows
@@ -90,7 +94,10 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=45.0, help="training wall time per measurement")
     parser.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default="auto")
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--backend", nargs="+", choices=BACKENDS, default=["local"],
+                        help="rollout workers as local processes and/or Ray actors (the overhead of Ray)")
     parser.add_argument("--paper", action="store_true", help="also train with the paper preset (10x4x64x512)")
+    parser.add_argument("--no-network", action="store_true", help="skip the network's forward+backward timing")
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -101,8 +108,9 @@ def main() -> None:
     for algo in args.algo:
         for preset in ("default", "paper") if args.paper else ("default",):
             result["workers"] += bench_workers(args, algo, preset)
-    result["network"] = [bench_network(preset, 64, args.device, bf16)
-                         for preset in ("default", "paper") for bf16 in (False, True)]
+    if not args.no_network:
+        result["network"] = [bench_network(preset, 64, args.device, bf16)
+                             for preset in ("default", "paper") for bf16 in (False, True)]
     if args.json:
         args.json.write_text(json.dumps(result, indent=2) + "\n")
 

@@ -1,0 +1,112 @@
+"""The Ray backend on a local Ray with 2 CPUs: the rollout contract, failures, and training like the local backend."""
+
+import csv
+import os
+import signal
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from agents.checkpoint import read_checkpoint
+from agents.fake_env import CueEnv, make_fake_env
+from agents.train import train
+from cosim.config import load_config
+from cosim.errors import ConfigError, SimulationError
+
+ray = pytest.importorskip("ray")
+from agents.ray_pool import RayWorkerPool  # noqa: E402 - only where Ray is installed
+
+
+@pytest.fixture(scope="module", autouse=True)
+def local_ray() -> Iterator[None]:
+    # One local Ray for the module (starting one takes seconds); the pools and runs below join it.
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    yield
+    ray.shutdown()
+
+
+def rows(run: Path) -> list[dict[str, str]]:
+    with (run / "episodes.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+def test_actors_deliver_the_envs_observations_exactly() -> None:
+    pool = RayWorkerPool(make_fake_env(n_agents=3, horizon=4, dtype="uint8"), workers=2)
+    local = [CueEnv(n_agents=3, horizon=4, dtype="uint8") for _ in range(2)]
+    try:
+        assert pool.obs.shape == (2, 3, 2, 4, 8, 16) and pool.spec.max_steps == 4
+        pool.send_reset([0, 1], [11, 12])
+        pool.recv([0, 1])
+        want = [env.reset(seed=s)[0] for env, s in zip(local, (11, 12), strict=True)]
+        rng = np.random.default_rng(0)
+        for _ in range(4):
+            for w in range(2):
+                np.testing.assert_array_equal(pool.obs[w], np.stack([want[w][a] for a in local[w].possible_agents]))
+            actions = rng.choice([0, 2], size=(2, 3))
+            pool.send_step([0, 1], actions)
+            for w, res in enumerate(pool.recv([0, 1])):
+                want[w], rew, _, trunc, _ = local[w].step(dict(zip(local[w].possible_agents, actions[w].tolist(),
+                                                                   strict=True)))
+                assert res.reward.tolist() == [rew[a] for a in local[w].possible_agents]
+                res.reward[0] = 0  # the caller owns what it receives
+                for i, a in enumerate(local[w].possible_agents):
+                    if trunc[a]:
+                        np.testing.assert_array_equal(pool.final[w, i], want[w][a])
+    finally:
+        pool.close()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "stopped"])
+def test_a_dead_or_silent_actor_is_restarted_and_its_episode_lost(sig: signal.Signals) -> None:
+    pool = RayWorkerPool(make_fake_env(n_agents=2), workers=2, timeout=3.0)
+    try:
+        pool.send_reset([0, 1], [0, 1])
+        pool.recv([0, 1])
+        before = pool.pid(0)
+        os.kill(before, sig)
+        pool.send_step([0, 1], np.ones((2, 2), dtype=np.int64))
+        lost = [r.lost for r in pool.recv([0, 1])]
+        assert lost == [True, False] and pool.restarts == 1 and pool.pid(0) != before
+        pool.send_reset([0], [5])  # the new actor serves like the first
+        (r,) = pool.recv([0])
+        assert not r.lost and r.alive.all() and pool.obs[0].any()
+    finally:
+        pool.close()
+
+
+def test_bad_input_and_hopeless_envs_stop_the_run() -> None:
+    with pytest.raises(SimulationError, match="could not start its env"):
+        RayWorkerPool(make_fake_env(n_agents=0), workers=1)
+    with pytest.raises(ConfigError, match="the Ray cluster has 2 CPUs"):
+        RayWorkerPool(make_fake_env(n_agents=2), workers=3)
+
+
+def test_a_failing_env_in_training_is_restarted_and_its_episode_not_counted(tmp_path: Path) -> None:
+    flag = tmp_path / "failed"
+    cfg = load_config({"train": {"feature_dim": 32, "head_hidden": 32, "precision": "float32"}})
+    result = train(cfg, tmp_path / "run", workers=2, episodes=8, backend="ray", progress=False,
+                   env_factory=make_fake_env(n_agents=2, fail_once_file=str(flag), fail_at_step=3))
+    assert flag.exists() and result.restarts == 1 and result.lost_episodes == 1
+    assert len(rows(tmp_path / "run")) == result.episodes == 8
+
+
+def test_ray_trains_the_smoke_config_like_the_local_backend_and_resumes(tmp_path: Path) -> None:
+    # SUMO is deterministic per seed and the learner samples the actions, so the same config and seeds give the
+    # same run on either backend: the same episodes and, bit for bit, the same weights.
+    cfg = load_config("configs/smoke.yaml")
+    local = train(cfg, tmp_path / "local", workers=2, episodes=8, progress=False)
+    train(cfg, tmp_path / "ray", workers=2, episodes=4, backend="ray", progress=False)
+    resumed = train(cfg, tmp_path / "ray", workers=2, episodes=8, resume=True, backend="ray", progress=False)
+    assert (resumed.episodes, resumed.updates, resumed.samples) == (local.episodes, local.updates, local.samples)
+    assert rows(tmp_path / "ray") == rows(tmp_path / "local")
+    a, b = (read_checkpoint(r.checkpoint)["policy"]["nets"][0] for r in (local, resumed))
+    assert all(torch.equal(v, b[k]) for k, v in a.items())
+
+
+def test_ray_address_needs_the_ray_backend(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="only with --backend ray"):
+        train(load_config("configs/smoke.yaml"), tmp_path / "run", ray_address="auto", progress=False)
+    assert not (tmp_path / "run").exists()
