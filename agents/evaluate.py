@@ -62,6 +62,8 @@ from cosim.policies import POLICIES
 log = logging.getLogger(__name__)
 
 CHECKPOINT = "checkpoint"  # the policy name of a trained run
+SB3 = "sb3"  # a Stable-Baselines3 PPO model (scripts/train_sb3.py), from --checkpoint
+TRAINED = (CHECKPOINT, SB3)
 BASELINES = ("sumo", "idle", "random", "scripted", "courteous")
 # Config overrides a policy needs: the all-human baseline hands the AVs to SUMO.
 POLICY_OVERRIDES: dict[str, dict[str, Any]] = {"sumo": {"sim.av_driver": "sumo"}}
@@ -101,8 +103,8 @@ ActPolicy = Callable[[Observations], dict[str, int]]  # live agents' observation
 
 @dataclass(frozen=True)
 class PolicySpec:
-    name: str  # CHECKPOINT or one of BASELINES
-    checkpoint: str | None = None  # the checkpoint file, for CHECKPOINT
+    name: str  # one of TRAINED or BASELINES
+    checkpoint: str | None = None  # the checkpoint (CHECKPOINT) or model file (SB3)
     greedy: bool = True
 
 
@@ -110,10 +112,12 @@ def make_policy(spec: PolicySpec, env: MergeEnv) -> Callable[[int], ActPolicy]:
     """A factory: episode seed -> the policy for that episode (seeded, so results do not depend on workers)."""
     if spec.name == CHECKPOINT:
         return _checkpoint_policy(Path(spec.checkpoint or ""), env, spec.greedy)
+    if spec.name == SB3:
+        return _sb3_policy(Path(spec.checkpoint or ""), env, spec.greedy)
     if spec.name == "sumo":  # actions are ignored when SUMO drives; send idle
         return lambda seed: lambda obs: dict.fromkeys(obs, int(Action.IDLE))
     if spec.name not in POLICIES:
-        raise ConfigError(f"--policy {spec.name}: unknown; expected one of {[CHECKPOINT, *BASELINES]}")
+        raise ConfigError(f"--policy {spec.name}: unknown; expected one of {[*TRAINED, *BASELINES]}")
     builder = POLICIES[spec.name]
 
     def for_episode(seed: int) -> ActPolicy:
@@ -144,6 +148,28 @@ def _checkpoint_policy(path: Path, env: MergeEnv, greedy: bool) -> Callable[[int
     def for_episode(seed: int) -> ActPolicy:
         torch.manual_seed(seed)  # sampled actions are reproducible per episode
         return lambda obs: act_agents(nets, obs, greedy)
+
+    return for_episode
+
+
+def _sb3_policy(path: Path, env: MergeEnv, greedy: bool) -> Callable[[int], ActPolicy]:
+    import torch
+
+    try:
+        from agents.sb3 import load_actor
+    except ImportError as exc:
+        raise ConfigError(f"--policy sb3: {exc.name} is missing; pip install -e \".[sb3]\" installs it") from None
+    space = env.observation_space(env.possible_agents[0])
+    act = load_actor(path, tuple(space.shape), int(env.action_space(env.possible_agents[0]).n))
+
+    def for_episode(seed: int) -> ActPolicy:
+        torch.manual_seed(seed)  # sampled actions are reproducible per episode
+
+        def policy(obs: Mapping[str, np.ndarray]) -> dict[str, int]:
+            names = list(obs)
+            return dict(zip(names, act(np.stack([obs[a] for a in names]), greedy).tolist(), strict=True))
+
+        return policy
 
     return for_episode
 
@@ -213,7 +239,7 @@ def _worker_init(job: Job, tmp_root: str) -> None:
     global _RUNNER
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     tempfile.tempdir = tmp_root  # the parent removes it, also after a worker was killed
-    if job.policy.name == CHECKPOINT:
+    if job.policy.name in TRAINED:
         import torch
 
         torch.set_num_threads(1)  # W workers on W cores
@@ -350,8 +376,8 @@ def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed
 
 def _trained_updates(policy: PolicySpec) -> int | None:
     """Which state of a checkpoint is evaluated: a run trained further must not resume its old evaluation."""
-    if policy.checkpoint is None:
-        return None
+    if policy.name != CHECKPOINT or policy.checkpoint is None:
+        return None  # an SB3 model file is not overwritten by its script: its path names it
     from agents.checkpoint import load_policy
 
     updates = load_policy(policy.checkpoint)[1]["counters"].get("updates")
@@ -392,9 +418,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_config_arguments(parser, default=None)
     parser.add_argument("--run", type=Path, help="training run folder (its config.yaml and checkpoint.pt)")
     parser.add_argument("--checkpoint", type=Path, help="checkpoint file (default: RUN/checkpoint.pt)")
-    parser.add_argument("--policy", choices=[CHECKPOINT, *BASELINES], default=None,
+    parser.add_argument("--policy", choices=[*TRAINED, *BASELINES], default=None,
                         help="a baseline instead of a checkpoint: sumo (SUMO drives the AVs), idle, random, "
-                             "scripted (egoistic), courteous (lets the merging vehicle in) (default: checkpoint)")
+                             "scripted (egoistic), courteous (lets the merging vehicle in); or sb3, a "
+                             "Stable-Baselines3 model given by --checkpoint (scripts/train_sb3.py) "
+                             "(default: checkpoint)")
     parser.add_argument("--episodes", type=int, help="evaluation episodes (default: evaluate.episodes, 100)")
     parser.add_argument("--net", type=Path, help="evaluate on another .net.xml (its description is found "
                                                  "beside it or inferred)")
@@ -424,6 +452,10 @@ def run(args: argparse.Namespace) -> int:
     trajectories = ec.trajectories if args.trajectories is None else args.trajectories
     check_counts(episodes, workers, trajectories, prefix="--")
     checkpoint = None
+    if name == SB3:
+        if args.checkpoint is None or not args.checkpoint.is_file():
+            raise CosimError(f"--policy sb3: give the model file with --checkpoint FILE (got {args.checkpoint})")
+        checkpoint = str(args.checkpoint.resolve())
     if name == CHECKPOINT:
         if args.run is None and args.checkpoint is None:
             raise CosimError("cosim evaluate: give --run RUN (or --checkpoint FILE) for a trained policy, "

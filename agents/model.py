@@ -43,20 +43,15 @@ def _init(layer: nn.Module, gain: float) -> nn.Module:
     return layer
 
 
-class ActorCritic(nn.Module):
-    """Feature extractor (Conv3D x3 -> FC) shared by an actor head (logits) and a critic head (value)."""
+class VelocityMapEncoder(nn.Module):
+    """The feature extractor of Table 1: Conv3D x3 -> FC, `(B, F, C, H, W)` any dtype -> `(B, feature_dim)`.
+    Also the features extractor of other libraries' policies (scripts/train_sb3.py)."""
 
-    def __init__(self, obs_shape: tuple[int, ...], n_actions: int = 5, *, feature_dim: int = 512,
-                 head_hidden: int = 256, bf16: bool = False) -> None:
+    def __init__(self, obs_shape: tuple[int, ...], feature_dim: int = 512) -> None:
         super().__init__()
-        # Run the forward pass in bfloat16 (weights and outputs stay float32): about twice as fast on CPUs with
-        # AMX / AVX512-BF16 (scripts/bench_train.py); the trainer turns it on there, evaluation never does.
-        self.bf16 = bf16
         if len(obs_shape) != 4:
             raise ConfigError(f"observation shape must be (frames, channels, height, width), got {obs_shape}")
-        self.obs_shape = tuple(int(s) for s in obs_shape)
-        self.n_actions = n_actions
-        frames, channels, height, width = self.obs_shape
+        frames, channels, height, width = (int(s) for s in obs_shape)
         relu_gain = math.sqrt(2.0)
         layers: list[nn.Module] = []
         in_ch = channels
@@ -72,18 +67,32 @@ class ActorCritic(nn.Module):
                 raise ConfigError(f"observation: shape {obs_shape} is too small for the paper's Conv3D stack; raise "
                                   f"observation.height_px / width_px / frames ({exc})") from None
         self.fc = nn.Sequential(_init(nn.Linear(n_flat, feature_dim), relu_gain), nn.ReLU())
-        self.actor = nn.Sequential(_init(nn.Linear(feature_dim, head_hidden), relu_gain), nn.ReLU(),
-                                   _init(nn.Linear(head_hidden, n_actions), 0.01))
-        self.critic = nn.Sequential(_init(nn.Linear(feature_dim, head_hidden), relu_gain), nn.ReLU(),
-                                    _init(nn.Linear(head_hidden, 1), 1.0))
         self.conv.to(memory_format=torch.channels_last_3d)
 
-    def features(self, obs: torch.Tensor) -> torch.Tensor:
-        """(B, F, C, H, W) any dtype -> (B, feature_dim)."""
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
         x = obs.float() / 255.0 if obs.dtype == torch.uint8 else obs.float()
         x = x.permute(0, 2, 1, 3, 4)  # (B, C, F, H, W): channels as Conv3D channels, frames as depth
         # Channels-last: oneDNN's Conv3D on the CPU runs about twice as fast in this layout (scripts/bench_train.py).
         return self.fc(self.conv(x.contiguous(memory_format=torch.channels_last_3d)))
+
+
+class ActorCritic(nn.Module):
+    """Feature extractor (`VelocityMapEncoder`) shared by an actor head (logits) and a critic head (value)."""
+
+    def __init__(self, obs_shape: tuple[int, ...], n_actions: int = 5, *, feature_dim: int = 512,
+                 head_hidden: int = 256, bf16: bool = False) -> None:
+        super().__init__()
+        # Run the forward pass in bfloat16 (weights and outputs stay float32): about twice as fast on CPUs with
+        # AMX / AVX512-BF16 (scripts/bench_train.py); the trainer turns it on there, evaluation never does.
+        self.bf16 = bf16
+        self.obs_shape = tuple(int(s) for s in obs_shape)
+        self.n_actions = n_actions
+        relu_gain = math.sqrt(2.0)
+        self.features = VelocityMapEncoder(self.obs_shape, feature_dim)
+        self.actor = nn.Sequential(_init(nn.Linear(feature_dim, head_hidden), relu_gain), nn.ReLU(),
+                                   _init(nn.Linear(head_hidden, n_actions), 0.01))
+        self.critic = nn.Sequential(_init(nn.Linear(feature_dim, head_hidden), relu_gain), nn.ReLU(),
+                                    _init(nn.Linear(head_hidden, 1), 1.0))
 
     def _precision(self, obs: torch.Tensor) -> torch.autocast:
         return torch.autocast(obs.device.type, dtype=torch.bfloat16, enabled=self.bf16)

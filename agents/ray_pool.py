@@ -41,6 +41,23 @@ def _import_ray() -> Any:
     return ray
 
 
+def connect(address: str | None, cpus: int) -> tuple[Any, bool]:
+    """Ray, joined to the cluster at `address` or (None) to a local Ray started here with `cpus` logical CPUs;
+    an initialised Ray (inside a Ray task) is used as it is. Returns (ray, whether this call started it)."""
+    ray = _import_ray()
+    if ray.is_initialized():
+        return ray, False
+    if address is None:
+        ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING)
+        return ray, True
+    try:
+        ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
+    except ConnectionError as exc:
+        raise ConfigError(f"--ray-address {address}: no Ray cluster there ({exc}); start one with `ray start "
+                          "--head`, or leave out --ray-address for a local Ray") from None
+    return ray, True
+
+
 class _EnvActor:
     """One env in an actor process. A failure to build the env is kept and raised by `start`, so that the
     driver sees the env's own exception (Ray would otherwise report only that the actor died)."""
@@ -91,24 +108,14 @@ class RayWorkerPool:
 
     def __init__(self, env_factory: EnvFactory, workers: int, max_restarts: int = 100, timeout: float = 60.0,
                  address: str | None = None) -> None:
-        ray = self.ray = _import_ray()
         self.max_restarts = max_restarts
         self.timeout = timeout
         self.restarts = 0
         self.actors: list[Any] = []
         self.pids: list[int] = []
         self._pending: dict[int, Any] = {}
-        self._started_ray = False
-        if not ray.is_initialized():
-            if address is None:
-                ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING)
-            else:
-                try:
-                    ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
-                except ConnectionError as exc:
-                    raise ConfigError(f"--ray-address {address}: no Ray cluster there ({exc}); start one with "
-                                      "`ray start --head`, or leave out --ray-address for a local Ray") from None
-            self._started_ray = True
+        self.ray, self._started_ray = connect(address, workers)
+        ray = self.ray
         cpus = ray.cluster_resources().get("CPU", 0)
         if cpus < workers:
             self.close()

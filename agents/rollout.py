@@ -23,6 +23,7 @@ This module imports neither torch nor SUMO, so workers start fast; the env facto
 
 from __future__ import annotations
 
+import argparse
 import logging
 import multiprocessing as mp
 import os
@@ -199,6 +200,17 @@ class Backend:
 
             return RayWorkerPool(env_factory, workers, max_restarts, timeout, self.ray_address)
         return WorkerPool(env_factory, workers, max_restarts, timeout)
+
+
+def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
+    """--backend / --ray-address: where the rollout workers run (training and `cosim sweep`)."""
+    parser.add_argument("--backend", choices=BACKENDS, default="local",
+                        help="rollout workers as local processes (default) or as Ray actors (pip install -e "
+                             "\".[ray]\"); a training run's learner stays in its own process, a sweep's runs are "
+                             "Ray tasks")
+    parser.add_argument("--ray-address", default=None, metavar="auto|HOST:PORT",
+                        help="with --backend ray: the Ray cluster to join (auto: the one `ray start` runs here); "
+                             "default: start a local Ray")
 
 
 class WorkerFailure(Exception):

@@ -25,16 +25,18 @@ import shlex
 import shutil
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from agents.config import train_config
 from agents.evaluate import PolicySpec, evaluate, read_rows
+from agents.rollout import Backend, add_backend_arguments
 from cosim.cli import add_config_arguments
 from cosim.config import EVAL_SEED_START, Config, load_config
-from cosim.errors import ConfigError
+from cosim.errors import ConfigError, SimulationError
 from cosim.files import atomic_write_text
 from cosim.metrics import format_table, rate_ci, summarize
 
@@ -50,11 +52,13 @@ def run_name(phi: float, seed: int) -> str:
 
 def sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], budget_min: float,
           eval_episodes: int = 100, eval_workers: int = 2, baselines: Sequence[str] = BASELINES,
-          command: str = "") -> dict[str, Any]:
+          command: str = "", backend: Backend | None = None) -> dict[str, Any]:
     """Run (or continue) the sweep into `out`; returns the report's data (module doc)."""
     if not phis or not seeds:
         raise ConfigError("cosim sweep: give at least one --phi and one --seed")
-    out = Path(out)
+    backend = backend or Backend()
+    backend.check()
+    out = Path(out).resolve()  # Ray tasks on other machines find it there (a shared file system)
     walls: dict[str, float] = _load_walls(out)
     for name in baselines:
         t0 = time.perf_counter()
@@ -65,12 +69,48 @@ def sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], b
     from agents.report import write_report  # matplotlib only once there is something to plot
 
     result: dict[str, Any] = {}
-    for phi, seed in run_order(phis, seeds):
-        _train_and_evaluate(cfg, out, phi, seed, budget_min, eval_episodes, eval_workers, walls)
+    args = (cfg, out, budget_min, eval_episodes, eval_workers)
+    runs = run_order(phis, seeds)
+    finished = _runs_on_ray(runs, args, backend) if backend.name == "ray" else (
+        _train_and_evaluate(*args, phi, seed) for phi, seed in runs)
+    for run_walls in finished:
+        for key, seconds in run_walls.items():
+            walls[key] = walls.get(key, 0.0) + seconds
         atomic_write_text(out / "walls.json", json.dumps(walls, indent=2) + "\n")
         # The report so far after every run: an interrupted sweep still shows what it has.
         result = write_report(out, phis, seeds, baselines, eval_episodes, command, walls)
     return result
+
+
+def _runs_on_ray(runs: Sequence[tuple[float, int]], args: tuple, backend: Backend) -> Iterator[dict[str, float]]:
+    """The runs as Ray tasks over the cluster, as many at once as it has CPUs for (a run takes one for its learner
+    and one per rollout actor); yields each run's wall times as it finishes, in the order they finish."""
+    from agents.ray_pool import connect
+
+    per_run = train_config(args[0]).workers + 1
+    ray, started = connect(backend.ray_address, per_run)
+    try:
+        parallel = int(ray.cluster_resources().get("CPU", 0)) // per_run
+        if parallel < 1:
+            raise ConfigError(f"train.workers = {per_run - 1}: a run needs {per_run} CPUs of the Ray cluster (its "
+                              f"learner and its rollout actors), the cluster has {ray.cluster_resources().get('CPU')}")
+        log.info("%d runs on Ray, %d at a time", len(runs), parallel)
+        task = ray.remote(num_cpus=1, max_retries=0)(_train_and_evaluate)
+        queue, pending = list(runs), {}
+        while queue or pending:
+            while queue and len(pending) < parallel:
+                phi, seed = queue.pop(0)
+                pending[task.remote(*args, phi, seed, "ray")] = run_name(phi, seed)
+            (done,), _ = ray.wait(list(pending), num_returns=1)
+            name = pending.pop(done)
+            try:
+                yield ray.get(done)
+            except ray.exceptions.RayTaskError as exc:  # the run's own error, as the local sweep would raise it
+                raise (exc.cause if isinstance(exc.cause, Exception) else SimulationError(f"{name}: {exc}")) from None
+            log.info("finished %s", name)
+    finally:
+        if started:
+            ray.shutdown()
 
 
 def run_order(phis: Sequence[float], seeds: Sequence[int]) -> list[tuple[float, int]]:
@@ -86,11 +126,13 @@ def _load_walls(out: Path) -> dict[str, float]:
     return json.loads(path.read_text()) if path.is_file() else {}
 
 
-def _train_and_evaluate(cfg: Config, out: Path, phi: float, seed: int, budget_min: float, eval_episodes: int,
-                        eval_workers: int, walls: dict[str, float]) -> None:
+def _train_and_evaluate(cfg: Config, out: Path, budget_min: float, eval_episodes: int, eval_workers: int,
+                        phi: float, seed: int, backend: str = "local") -> dict[str, float]:
+    """Train (or finish training) and evaluate one run; returns the wall times [s] of what it did."""
     from agents.checkpoint import CHECKPOINT_NAME, read_checkpoint
     from agents.train import train
 
+    walls: dict[str, float] = {}
     name = run_name(phi, seed)
     run_dir = out / "runs" / name
     run_cfg = load_config(cfg, {"reward.phi": phi, "train.seed": seed, "train.budget_min": budget_min})
@@ -103,7 +145,7 @@ def _train_and_evaluate(cfg: Config, out: Path, phi: float, seed: int, budget_mi
     if not done:
         log.info("training %s (budget %.1f min)", name, budget_min)
         t0 = time.perf_counter()
-        result = train(run_cfg, run_dir, resume=ckpt.is_file())
+        result = train(run_cfg, run_dir, resume=ckpt.is_file(), backend=backend)
         _add_wall(walls, f"train {name}", t0)
         if result.interrupted:
             raise KeyboardInterrupt
@@ -112,6 +154,7 @@ def _train_and_evaluate(cfg: Config, out: Path, phi: float, seed: int, budget_mi
     evaluate(run_cfg, PolicySpec("checkpoint", str(ckpt.resolve())), run_dir / "eval", episodes=eval_episodes,
              seed=EVAL_SEED_START, workers=eval_workers, trajectories=3, run_dir=run_dir, plots=False)
     _add_wall(walls, f"evaluate {name}", t0)
+    return walls
 
 
 def _add_wall(walls: dict[str, float], key: str, t0: float) -> None:
@@ -145,7 +188,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eval-episodes", type=int, default=100, help="evaluation episodes per run and baseline")
     parser.add_argument("--eval-workers", type=int, default=2, help="evaluation worker processes")
     parser.add_argument("--baselines", nargs="*", choices=BASELINES, default=list(BASELINES))
-    parser.add_argument("--out", type=Path, default=Path("runs/sweep"), help="sweep folder (default: %(default)s)")
+    parser.add_argument("--out", type=Path, default=Path("runs/sweep"), help="sweep folder (default: %(default)s); "
+                        "with --backend ray on several machines, on a file system they all share")
+    add_backend_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -159,7 +204,7 @@ def run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, args.overrides)
     command = "cosim sweep " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["sweep"] else ""
     result = sweep(cfg, args.out, args.phi, args.seeds, args.budget_min, args.eval_episodes, args.eval_workers,
-                   args.baselines, command)
+                   args.baselines, command, Backend(args.backend, args.ray_address))
     log.info("wrote %s", args.out / "report.md")
     print(format_table(result["table"], result["episodes"]))
     return 0

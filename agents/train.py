@@ -48,7 +48,7 @@ from agents.collect import Collected, collect
 from agents.config import TrainConfig, check_device, train_config
 from agents.logs import RunLogger
 from agents.multiagent import Batch, MultiAgentPolicy
-from agents.rollout import BACKENDS, Backend, EnvFactory
+from agents.rollout import Backend, EnvFactory, add_backend_arguments
 from cosim.cli import Heartbeat, add_config_arguments
 from cosim.config import EVAL_SEED_START, Config, load_config
 from cosim.errors import ConfigError
@@ -391,16 +391,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--device", default=None, help="cpu | cuda | cuda:N (default: train.device)")
     add_backend_arguments(parser)
     return parser
-
-
-def add_backend_arguments(parser: argparse.ArgumentParser) -> None:
-    """--backend / --ray-address: where the rollout workers run (training and `cosim sweep`)."""
-    parser.add_argument("--backend", choices=BACKENDS, default="local",
-                        help="rollout workers as local processes (default) or as Ray actors (pip install -e "
-                             "\".[ray]\"); the learner stays in this process either way")
-    parser.add_argument("--ray-address", default=None, metavar="auto|HOST:PORT",
-                        help="with --backend ray: the Ray cluster to join (auto: the one `ray start` runs here); "
-                             "default: start a local Ray")
 
 
 def run(args: argparse.Namespace) -> int:

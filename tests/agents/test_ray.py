@@ -1,6 +1,7 @@
 """The Ray backend on a local Ray with 2 CPUs: the rollout contract, failures, and training like the local backend."""
 
 import csv
+import json
 import os
 import signal
 from collections.abc import Iterator
@@ -12,6 +13,8 @@ import torch
 
 from agents.checkpoint import read_checkpoint
 from agents.fake_env import CueEnv, make_fake_env
+from agents.rollout import Backend
+from agents.sweep import sweep
 from agents.train import train
 from cosim.config import load_config
 from cosim.errors import ConfigError, SimulationError
@@ -110,3 +113,18 @@ def test_ray_address_needs_the_ray_backend(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="only with --backend ray"):
         train(load_config("configs/smoke.yaml"), tmp_path / "run", ray_address="auto", progress=False)
     assert not (tmp_path / "run").exists()
+
+
+def test_sweep_runs_its_runs_as_ray_tasks(tmp_path: Path) -> None:
+    # A run takes a CPU for its learner and one per rollout actor: 2 here, so the 2-CPU Ray runs one at a time.
+    cfg = load_config("configs/smoke.yaml", ["train.workers=1"])
+    out = tmp_path / "sweep"
+    result = sweep(cfg, out, [0.0, 0.7854], [0], budget_min=0.05, eval_episodes=2, eval_workers=1,
+                   baselines=("idle",), backend=Backend("ray"))
+    assert result["episodes"] == {"idle": 2, "phi=0.000 (egoistic)": 2, "phi=0.785 (altruistic)": 2}
+    walls = json.loads((out / "walls.json").read_text())
+    assert {"train phi_0.0000_seed_0", "train phi_0.7854_seed_0", "evaluate phi_0.7854_seed_0"} <= set(walls)
+    assert (out / "report.md").is_file() and read_checkpoint(out / "runs" / "phi_0.0000_seed_0" / "checkpoint.pt")
+    with pytest.raises(ConfigError, match="a run needs 3 CPUs"):
+        sweep(load_config("configs/smoke.yaml"), tmp_path / "big", [0.0], [0], budget_min=0.05, eval_episodes=2,
+              baselines=("idle",), backend=Backend("ray"))

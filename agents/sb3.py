@@ -1,0 +1,100 @@
+"""Stable-Baselines3 on the env (`pip install -e ".[sb3]"`): the paper's encoder as SB3's features extractor,
+the vector env of SuperSuit's wrappers, and a saved SB3 model as a policy of `cosim evaluate --policy sb3`.
+
+Contract: `make_vec_env(config, envs, seed)` gives an SB3 `VecEnv` over `envs` copies of the env, each in a
+process of its own (libsumo allows one SUMO per process), every AV a sub-env (SuperSuit's `black_death_v3`
+keeps an AV that has left with zero observations until its episode ends, `pettingzoo_env_to_vec_env_v1`
+makes the AVs sub-envs, so one network serves them all); copy i plays its own episode seeds, below the
+evaluation seeds. `POLICY_KWARGS` puts `VelocityMapExtractor` (the paper's Conv3D stack) under SB3's
+policies; a model saved with it loads by `load_actor(path)`, which acts on a batch of observations.
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import numpy as np
+import supersuit as ss
+import torch
+from stable_baselines3 import PPO
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecMonitor
+from supersuit.vector import MakeCPUAsyncConstructor
+from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
+
+from agents.model import VelocityMapEncoder
+from cosim.config import EVAL_SEED_START, Config
+from cosim.errors import ConfigError
+
+EPISODES_PER_COPY = 1_000_000  # episode seeds set aside for each env copy of a run
+
+
+class VelocityMapExtractor(BaseFeaturesExtractor):
+    """`agents.model.VelocityMapEncoder` as SB3's features extractor."""
+
+    def __init__(self, observation_space: gymnasium.spaces.Box, features_dim: int = 512) -> None:
+        super().__init__(observation_space, features_dim)
+        self.encoder = VelocityMapEncoder(observation_space.shape, features_dim)
+        # SB3 hands over float copies of the env's uint8 maps: scale them as the encoder scales uint8.
+        self.scale = 255.0 if observation_space.dtype == np.uint8 else 1.0
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.encoder(obs / self.scale)
+
+
+# A hidden layer of 256 for the actor and the critic each, over the shared extractor (the paper's Table 1).
+POLICY_KWARGS = {"features_extractor_class": VelocityMapExtractor, "net_arch": [256], "normalize_images": False}
+
+
+class _SummaryRenamed(VecEnvWrapper):
+    """SB3 reads info["episode"] as its own statistics ({r, l, t}, from VecMonitor): the env's summary, which
+    has that name too, moves to info["cosim_episode"]."""
+
+    def reset(self) -> Any:
+        return self.venv.reset()
+
+    def step_wait(self) -> Any:
+        obs, rewards, dones, infos = self.venv.step_wait()
+        for info in infos:
+            if "episode" in info:
+                info["cosim_episode"] = info.pop("episode")
+        return obs, rewards, dones, infos
+
+
+def _agents_as_envs(config: dict[str, Any], first_seed: int) -> Any:
+    import cosim
+
+    return ss.pettingzoo_env_to_vec_env_v1(ss.black_death_v3(cosim.parallel_env(config, {"sim.seed": first_seed})))
+
+
+def make_vec_env(config: Config, envs: int, seed: int) -> VecEnv:
+    """`envs` env copies in processes of their own, all their AVs as sub-envs (module doc)."""
+    if (seed * envs + envs) * EPISODES_PER_COPY > EVAL_SEED_START:
+        raise ConfigError(f"--seed {seed}: its episode seeds would reach the evaluation seeds ({EVAL_SEED_START:,})")
+    # Not ss.concat_vec_envs_v1: it clones one env, so that every copy would play the same episodes.
+    fns = [functools.partial(_agents_as_envs, config.to_dict(), (seed * envs + i) * EPISODES_PER_COPY)
+           for i in range(envs)]
+    example = fns[0]()
+    spaces = example.observation_space, example.action_space
+    example.close()  # libsumo's one simulation per process: SuperSuit builds another example here
+    return VecMonitor(_SummaryRenamed(SB3VecEnvWrapper(MakeCPUAsyncConstructor(envs)(fns, *spaces))))
+
+
+def load_actor(path: Path, obs_shape: tuple[int, ...], n_actions: int) -> Any:
+    """A saved SB3 PPO model as `act(obs (B, F, C, H, W), greedy) -> actions (B,)`."""
+    try:
+        model = PPO.load(path, device="cpu")
+    except (OSError, ValueError, KeyError) as exc:
+        raise ConfigError(f"--checkpoint {path}: not a Stable-Baselines3 PPO model ({exc})") from None
+    if tuple(model.observation_space.shape) != tuple(obs_shape) or model.action_space.n != n_actions:
+        raise ConfigError(f"--checkpoint {path}: trained on observations {model.observation_space.shape} with "
+                          f"{model.action_space.n} actions; this scenario has {obs_shape} and {n_actions}")
+
+    def act(obs: np.ndarray, greedy: bool) -> np.ndarray:
+        actions, _ = model.predict(obs, deterministic=greedy)
+        return np.asarray(actions, dtype=np.int64)
+
+    return act

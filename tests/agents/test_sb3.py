@@ -1,0 +1,45 @@
+"""Another library on the env: Stable-Baselines3's PPO trained by scripts/train_sb3.py, evaluated by cosim."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import cosim
+from cosim.errors import ConfigError
+
+pytest.importorskip("stable_baselines3")
+pytest.importorskip("supersuit")
+from agents.sb3 import load_actor  # noqa: E402 - only where the extra is installed
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_sb3_trains_on_the_env_and_its_model_evaluates_like_any_policy(tmp_path: Path) -> None:
+    out = tmp_path / "sb3"
+    done = subprocess.run([sys.executable, "scripts/train_sb3.py", "--config", "configs/smoke.yaml", "--steps", "2048",
+                           "--envs", "2", "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    model = out / "model.zip"
+    env = cosim.parallel_env("configs/smoke.yaml")
+    shape = env.observation_space(env.possible_agents[0]).shape
+    env.close()
+    act = load_actor(model, shape, 5)
+    actions = act(np.zeros((3, *shape), np.uint8), True)
+    assert actions.shape == (3,) and set(actions.tolist()) <= set(range(5))
+    with pytest.raises(ConfigError, match="trained on observations"):
+        load_actor(model, (shape[0] + 1, *shape[1:]), 5)
+
+    ev = subprocess.run([sys.executable, "-m", "cosim.cli", "evaluate", "--config", "configs/smoke.yaml", "--policy",
+                         "sb3", "--checkpoint", str(model), "--episodes", "2", "--no-plots", "--out",
+                         str(tmp_path / "eval")], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert ev.returncode == 0, ev.stderr[-3000:]
+    summary = json.loads((tmp_path / "eval" / "summary.json").read_text())
+    assert summary["episodes"] == 2
+
+    again = subprocess.run([sys.executable, "scripts/train_sb3.py", "--config", "configs/smoke.yaml",
+                            "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert again.returncode == 2 and "holds a model.zip already" in again.stderr and "Traceback" not in again.stderr
