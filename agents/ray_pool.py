@@ -1,8 +1,7 @@
 """Rollout workers as Ray actors (`cosim train --backend ray`): the contract of `agents.rollout.WorkerPool`.
 
-Contract: `RayWorkerPool(env_factory, workers, max_restarts, timeout, address)` connects to Ray (`address`
-"auto" or HOST:PORT: a running cluster; None: a local Ray started for this process, one logical CPU per
-worker so that more workers than cores wait on SUMO as the local backend's processes do) and starts
+Contract: `RayWorkerPool(env_factory, workers, max_restarts, timeout, address)` connects to Ray (`connect`:
+`address` "auto" or HOST:PORT, a running cluster; None, a local Ray started for this process) and starts
 W actors, one env (one SUMO) and one CPU each, anywhere in the cluster. It offers what the trainer uses of
 `WorkerPool`: `spec`, the (W, N, F, C, H, W) arrays `obs` and `final` (here plain arrays of the driver that
 each result is copied into, since actors may live on other machines), `send_reset`, `send_step`, `recv`,
@@ -20,6 +19,7 @@ import copy
 import logging
 import os
 import shutil
+import socket
 import tempfile
 import time
 from collections.abc import Sequence
@@ -42,14 +42,24 @@ def _import_ray() -> Any:
 
 
 def connect(address: str | None, cpus: int) -> tuple[Any, bool]:
-    """Ray, joined to the cluster at `address` or (None) to a local Ray started here with `cpus` logical CPUs;
-    an initialised Ray (inside a Ray task) is used as it is. Returns (ray, whether this call started it)."""
+    """Ray, joined to the cluster at `address` or (None) to a local Ray started here with this machine's CPUs,
+    or `cpus` logical ones where that is more (more rollout workers than cores wait on SUMO, as local worker
+    processes do); an initialised Ray (inside a Ray task) is used as it is. Returns (ray, whether this call
+    started it)."""
     ray = _import_ray()
     if ray.is_initialized():
         return ray, False
     if address is None:
-        ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING)
+        ray.init(num_cpus=max(os.cpu_count() or 1, cpus), include_dashboard=False, log_to_driver=False,
+                 logging_level=logging.WARNING)
         return ray, True
+    host, _, port = address.rpartition(":")
+    if host and port.isdigit():  # Ray itself retries an unreachable address for minutes
+        try:
+            socket.create_connection((host, int(port)), timeout=10).close()
+        except OSError as exc:
+            raise ConfigError(f"--ray-address {address}: cannot reach it ({exc}); start a cluster there with `ray "
+                              "start --head`, or leave out --ray-address for a local Ray") from None
     try:
         ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
     except ConnectionError as exc:

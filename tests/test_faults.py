@@ -85,6 +85,9 @@ def smoke_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     (["train", "--config", SMOKE, "--out", "a_file"], "a_file: is a file, not a folder"),
     (["compare", "no_such_run", "--out", "report"], "no_such_run: no evaluation found"),
     (["run-scenario", "--config", SMOKE, "--episodes", "1", "--save-routes", "a_file/routes"], "a_file/routes"),
+    (["train", "--config", SMOKE, "--out", "run", "--ray-address", "auto"], "only with --backend ray"),
+    (["train", "--config", SMOKE, "--out", "run", "--backend", "ray", "--ray-address", "127.0.0.1:1"],
+     "127.0.0.1:1: cannot reach it"),
 ])
 def test_bad_input_is_one_line_and_exit_2(tmp_path: Path, args: list[str], expected: str) -> None:
     (tmp_path / "a_file").write_text("mine\n")
