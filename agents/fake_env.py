@@ -6,13 +6,15 @@ observations (read-only views into a buffer that the next step overwrites, like 
 channel 1 lit) and earns 1 for answering it with lane-left (0) or lane-right (2) respectively, so the
 optimal policy is learnable from the observation. Accelerate (3) "crashes" the agent: reward -1 and
 terminated. Agents still running at `horizon` steps are truncated. Infos carry `reward_terms` and, on
-the last step, `episode`. `fail_once_file` makes the env raise `SimulationError` once (across processes)
-at step `fail_at_step`, to test worker restarts. `make_fake_env(**kw)` is a picklable env factory.
+the last step, `episode`. `fail_once_file` makes the env fail once (across processes) at step
+`fail_at_step`, to test worker restarts: raise `SimulationError`, or with `fail_by_exit` end its process
+(as a SUMO crash does). `make_fake_env(**kw)` is a picklable env factory.
 """
 
 from __future__ import annotations
 
 import functools
+import os
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +32,7 @@ class CueEnv(ParallelEnv):
 
     def __init__(self, n_agents: int = 2, obs_shape: tuple[int, int, int, int] = (2, 4, 8, 16),
                  dtype: str = "float32", horizon: int = 8, fail_once_file: str | None = None,
-                 fail_at_step: int = 3, render_mode: str | None = None) -> None:
+                 fail_at_step: int = 3, fail_by_exit: bool = False, render_mode: str | None = None) -> None:
         self.possible_agents = [f"av_{i}" for i in range(n_agents)]
         self.agents: list[str] = []
         self.render_mode = render_mode
@@ -38,6 +40,7 @@ class CueEnv(ParallelEnv):
         self.max_steps = horizon
         self.fail_once_file = fail_once_file
         self.fail_at_step = fail_at_step
+        self.fail_by_exit = fail_by_exit
         self._high = _HIGH[dtype]
         self._obs_space = spaces.Box(0, self._high, shape=tuple(obs_shape), dtype=np.dtype(dtype))
         self._act_space = spaces.Discrete(5)
@@ -87,6 +90,8 @@ class CueEnv(ParallelEnv):
             except FileExistsError:
                 pass
             else:
+                if self.fail_by_exit:
+                    os._exit(1)
                 raise SimulationError("fake SUMO crash")
         rewards, terms, truncs, infos = {}, {}, {}, {}
         for a in self.agents:
