@@ -12,7 +12,9 @@ Contract: `sweep(cfg, out, phis, seeds, budget_min, ...)` writes into `out`:
 Runs go egoistic and altruistic angles first, seed by seed, then the other angles (`run_order`). Every step is
 resumable: an interrupted sweep run again with the same arguments continues each training run
 from its checkpoint, each evaluation from its last finished episode, and skips what is complete. The exact
-command and each step's wall time go into the report.
+command and each step's wall time go into the report. With `backend=Backend("ray")` each run is a Ray task
+(its rollout workers Ray actors), as many at once as the cluster has CPUs for; they finish in any order,
+and `out` must be on a file system that every machine of the cluster sees.
 """
 
 from __future__ import annotations
