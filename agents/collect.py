@@ -26,6 +26,7 @@ from agents.rollout import WorkerPool
 @dataclass
 class Episode:
     worker: int
+    seed: int  # the env's episode seed
     info: dict[str, Any]  # the env's episode summary
     returns: np.ndarray  # (N,) per-agent return
     terms: dict[str, np.ndarray]  # reward term -> (N,) per-agent sum
@@ -74,7 +75,7 @@ def collect(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, seeds: lis
                     for name, values in res.reward_terms.items():
                         terms[w][name] += values
                 if res.episode is not None:
-                    out.episodes.append(Episode(w, res.episode, returns[w].copy(), dict(terms[w])))
+                    out.episodes.append(Episode(w, seeds[w], res.episode, returns[w].copy(), dict(terms[w])))
                     running.discard(w)
                 elif t + 1 >= batch.valid.shape[0]:
                     raise RuntimeError(f"an episode ran past {batch.valid.shape[0]} steps, the env's max_steps")

@@ -320,7 +320,7 @@ class _Run:
         rows = []
         for ep in got.episodes:
             c["episodes"] += 1
-            row: dict[str, Any] = {"episode": c["episodes"], "update": c["updates"],
+            row: dict[str, Any] = {"episode": c["episodes"], "update": c["updates"], "seed": ep.seed,
                                    "return_mean": float(ep.returns.mean())}
             row.update({f"return_{a}": float(r) for a, r in zip(self.agents, ep.returns, strict=True)})
             for key in ("crashed", "merged", "mean_distance", "merger_distance", "length", "cause_av",

@@ -1,32 +1,56 @@
-"""The README's main job: `cosim train` on configs/smoke.yaml (real SUMO, worker processes), then
-`cosim evaluate` of the trained run, through the CLI."""
+"""The README's main job, as the README writes it: `cosim train` on configs/smoke.yaml (real SUMO, worker
+processes), then `cosim evaluate` of the trained run, through the CLI."""
 
 from __future__ import annotations
 
 import csv
 import json
+import re
+import shlex
 from pathlib import Path
 
 import pytest
 
+from agents.checkpoint import read_checkpoint
 from cosim.cli import main
+from cosim.config import EVAL_SEED_START
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_smoke_train_then_evaluate(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.chdir(ROOT)
+def readme_main_job() -> list[list[str]]:
+    """The `cosim` commands of the README's main-job line, as argument lists."""
+    line = next(ln for ln in (ROOT / "README.md").read_text().splitlines() if "&& cosim train" in ln)
+    return [shlex.split(cmd)[1:] for cmd in re.split(r"\s*&&\s*", line) if cmd.strip().startswith("cosim ")]
+
+
+def rows(path: Path) -> list[dict[str, str]]:
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+def test_readme_main_job_trains_then_evaluates_the_trained_run(tmp_path: Path,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    train_args, eval_args = readme_main_job()
+    assert train_args[:3] == ["train", "--config", "configs/smoke.yaml"] and eval_args[0] == "evaluate"
     run = tmp_path / "runs" / "smoke"
-    assert main(["train", "--config", "configs/smoke.yaml", "--out", str(run)]) == 0
-    assert (run / "checkpoint.pt").is_file() and (run / "config.yaml").is_file()
-    with open(run / "episodes.csv") as f:
-        episodes = list(csv.DictReader(f))
-    assert len(episodes) >= 16
-    assert main(["evaluate", "--run", str(run), "--episodes", "3"]) == 0
+    train_args[train_args.index("--out") + 1] = str(run)
+    eval_args[eval_args.index("--run") + 1] = str(run)
+    eval_args[eval_args.index("--episodes") + 1] = "3"  # the README's 10, cut for time
+    monkeypatch.chdir(ROOT)
+
+    assert main(train_args) == 0
+    trained = rows(run / "episodes.csv")
+    assert len(trained) == 16  # train.episodes of the smoke config, no more
+    assert all(int(r["seed"]) < EVAL_SEED_START for r in trained)
+    updates = read_checkpoint(run / "checkpoint.pt")["counters"]["updates"]
+    assert (run / "policy.pt").is_file() and (run / "config.yaml").is_file()
+
+    assert main(eval_args) == 0
     summary = json.loads((run / "eval" / "summary.json").read_text())
-    assert summary["episodes"] == 3 and summary["policy"] == "checkpoint"
-    assert 0.0 <= summary["metrics"]["crash [%]"]["mean"] <= 100.0
-    with open(run / "eval" / "episodes.csv") as f:
-        rows = list(csv.DictReader(f))
-    assert len(rows) == 3
-    assert all(int(r["seed"]) >= 10_000_000 for r in rows)  # evaluation seeds never meet training seeds
+    assert summary["policy"] == "checkpoint" and summary["trained_updates"] == updates  # the trained state
+    evaluated = rows(run / "eval" / "episodes.csv")
+    assert [int(r["seed"]) for r in evaluated] == [EVAL_SEED_START + i for i in range(3)]
+    crashed = [r["crashed"] == "True" for r in evaluated]
+    assert summary["episodes"] == 3
+    assert summary["metrics"]["crash [%]"]["mean"] == pytest.approx(100 * sum(crashed) / 3)
