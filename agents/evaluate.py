@@ -342,7 +342,10 @@ def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed
     meta = {"policy": policy.name, "checkpoint": policy.checkpoint, "greedy": policy.greedy,
             "net": cfg.net.file, "run": None if run_dir is None else str(Path(run_dir).resolve()),
             "config_sha256": config_hash(cfg.to_dict()), "scenario_sha256": scenario_hash(cfg.to_dict()),
-            "trained_updates": _trained_updates(policy)}
+            "trained_updates": _trained_updates(policy),
+            # An SB3 model has no update counter: its content tells a retrained model from the evaluated one.
+            "model_sha256": (hashlib.sha256(Path(policy.checkpoint).read_bytes()).hexdigest()
+                             if policy.name == SB3 and policy.checkpoint else None)}
     seeds = [seed + k for k in range(episodes)]
     job = Job(cfg.to_dict(), policy, str(out_dir), frozenset(seeds[:trajectories]))
     Runner(job).close()  # bad nets and checkpoints fail here, before the folder is claimed
@@ -377,7 +380,7 @@ def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed
 def _trained_updates(policy: PolicySpec) -> int | None:
     """Which state of a checkpoint is evaluated: a run trained further must not resume its old evaluation."""
     if policy.name != CHECKPOINT or policy.checkpoint is None:
-        return None  # an SB3 model file is not overwritten by its script: its path names it
+        return None
     from agents.checkpoint import load_policy
 
     updates = load_policy(policy.checkpoint)[1]["counters"].get("updates")
@@ -389,9 +392,10 @@ def _claim(out_dir: Path, meta: dict[str, Any], cfg: Config) -> None:
     path = out_dir / "evaluation.json"
     if path.is_file():
         old = json.loads(path.read_text())
-        # trained_updates: only where recorded (folders from before it was).
-        differs = [k for k in ("policy", "checkpoint", "greedy", "net", "trained_updates")
-                   if old.get(k) != meta[k] and (k in old or k != "trained_updates")]
+        # trained_updates, model_sha256: only where recorded (folders from before they were).
+        later = ("trained_updates", "model_sha256")
+        differs = [k for k in ("policy", "checkpoint", "greedy", "net", *later)
+                   if old.get(k) != meta[k] and (k in old or k not in later)]
         if differs:
             raise CosimError(f"{out_dir}: holds an evaluation with other {', '.join(differs)} "
                              f"({', '.join(f'{k}={old.get(k)!r}' for k in differs)}); choose another --out")

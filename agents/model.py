@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -93,6 +94,12 @@ class ActorCritic(nn.Module):
                                    _init(nn.Linear(head_hidden, n_actions), 0.01))
         self.critic = nn.Sequential(_init(nn.Linear(feature_dim, head_hidden), relu_gain), nn.ReLU(),
                                     _init(nn.Linear(head_hidden, 1), 1.0))
+
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any) -> None:
+        # Checkpoints written before the encoder was a module of its own name its layers conv.* and fc.*.
+        for key in [k for k in state_dict if k.startswith((prefix + "conv.", prefix + "fc."))]:
+            state_dict[prefix + "features." + key[len(prefix):]] = state_dict.pop(key)
+        super()._load_from_state_dict(state_dict, prefix, *args)
 
     def _precision(self, obs: torch.Tensor) -> torch.autocast:
         return torch.autocast(obs.device.type, dtype=torch.bfloat16, enabled=self.bf16)

@@ -22,7 +22,9 @@ import shutil
 import socket
 import tempfile
 import time
+import uuid
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -54,7 +56,8 @@ def connect(address: str | None, cpus: int) -> tuple[Any, bool]:
                  logging_level=logging.WARNING)
         return ray, True
     host, _, port = address.rpartition(":")
-    if host and port.isdigit():  # Ray itself retries an unreachable address for minutes
+    host = host.strip("[]")  # an IPv6 address
+    if "://" not in address and host and port.isdigit():  # Ray itself retries an unreachable address for minutes
         try:
             socket.create_connection((host, int(port)), timeout=10).close()
         except OSError as exc:
@@ -68,13 +71,27 @@ def connect(address: str | None, cpus: int) -> tuple[Any, bool]:
     return ray, True
 
 
+def _remove_dead_actor_folders(pool_id: str) -> None:
+    """Remove the temporary folders, on this machine, of the pool's actors whose process is gone."""
+    for folder in Path(tempfile.gettempdir()).glob(f"cosim_actor_{pool_id}_*"):
+        pid = int(folder.name.split("_")[3])
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            shutil.rmtree(folder, ignore_errors=True)
+        except PermissionError:  # alive, another user's
+            pass
+
+
 class _EnvActor:
     """One env in an actor process. A failure to build the env is kept and raised by `start`, so that the
     driver sees the env's own exception (Ray would otherwise report only that the actor died)."""
 
-    def __init__(self, env_factory: EnvFactory) -> None:
-        # The env's temporary files go into a folder of this actor, removed by `close`.
-        self.tmp = tempfile.mkdtemp(prefix="cosim_actor_")
+    def __init__(self, env_factory: EnvFactory, pool_id: str) -> None:
+        # The env's temporary files go into a folder of this actor, removed by `close`; an actor that died
+        # (killed, SUMO crash) never got there, so each new one removes the folders of the pool's dead actors.
+        _remove_dead_actor_folders(pool_id)
+        self.tmp = tempfile.mkdtemp(prefix=f"cosim_actor_{pool_id}_{os.getpid()}_")
         tempfile.tempdir = self.tmp
         self.error: Exception | None = None
         self.runner: _EnvRunner | None = None
@@ -122,6 +139,7 @@ class RayWorkerPool:
         self.timeout = timeout
         self.restarts = 0
         self.actors: list[Any] = []
+        self.pool_id = uuid.uuid4().hex[:12]  # names the actors' temporary folders
         self.pids: list[int] = []
         self._pending: dict[int, Any] = {}
         self.ray, self._started_ray = connect(address, workers)
@@ -133,9 +151,8 @@ class RayWorkerPool:
                               "one; use fewer workers or add machines")
         # Ray restarts a dead actor by itself; this pool counts the failures against max_restarts.
         self._actor_cls = ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=0)(_EnvActor)
-        self.env_factory = env_factory
         try:
-            self.actors = [self._actor_cls.remote(env_factory) for _ in range(workers)]
+            self.actors = [self._actor_cls.remote(env_factory, self.pool_id) for _ in range(workers)]
             starts = [actor.start.remote() for actor in self.actors]
             self.pids = [0] * workers
             specs = [self._ready(w, starts[w]) for w in range(workers)]
@@ -179,8 +196,10 @@ class RayWorkerPool:
             try:
                 got, pid = self._get(ref if ref is not None else self.actors[w].start.remote(), wait)
                 waiting = pid == dead_pid  # the old process answered: the kill has not reached it yet
-            except ray.exceptions.ActorUnavailableError as exc:  # being restarted
-                got, waiting = exc, True
+            except ray.exceptions.RayActorError as exc:
+                # Being restarted, by Ray or after a kill of ours that a call may still meet as the old process
+                # dying: wait. An actor that dies at its very first start is a failure.
+                got, waiting = exc, isinstance(exc, ray.exceptions.ActorUnavailableError) or dead_pid is not None
             except (TimeoutError, WorkerFailure, ray.exceptions.RayError) as exc:
                 got, waiting = exc, False
             ref = None
@@ -211,7 +230,7 @@ class RayWorkerPool:
         log.warning("rollout actor %d failed (%s); Ray restarts it (restart %d of at most %d)", w,
                     str(reason).splitlines()[0], self.restarts, self.max_restarts)
         exceptions = self.ray.exceptions
-        if isinstance(reason, exceptions.RayActorError | exceptions.ActorUnavailableError):
+        if isinstance(reason, exceptions.RayActorError):
             return  # its process is gone: Ray restarts it by itself (a kill now would end the new one too)
         # A live actor whose env is broken or that hangs (SIGSTOP): killing it with restart makes Ray build it
         # anew from its constructor, on any node with a free CPU.
@@ -265,6 +284,7 @@ class RayWorkerPool:
                 except ray.exceptions.RayError:
                     pass
         self.actors = []
+        _remove_dead_actor_folders(self.pool_id)  # on this machine: all of them with a local Ray
         if self._started_ray:
             ray.shutdown()
             self._started_ray = False

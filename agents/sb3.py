@@ -2,11 +2,12 @@
 the vector env of SuperSuit's wrappers, and a saved SB3 model as a policy of `cosim evaluate --policy sb3`.
 
 Contract: `make_vec_env(config, envs, seed)` gives an SB3 `VecEnv` over `envs` copies of the env, each in a
-process of its own (libsumo allows one SUMO per process), every AV a sub-env (SuperSuit's `black_death_v3`
-keeps an AV that has left with zero observations until its episode ends, `pettingzoo_env_to_vec_env_v1`
-makes the AVs sub-envs, so one network serves them all); copy i plays its own episode seeds, below the
-evaluation seeds. `POLICY_KWARGS` puts `VelocityMapExtractor` (the paper's Conv3D stack) under SB3's
-policies; a model saved with it loads by `load_actor(path)`, which acts on a batch of observations.
+process of its own when there are several (libsumo allows one SUMO per process), every AV a sub-env
+(SuperSuit's `black_death_v3` keeps an AV that has left with zero observations until its episode ends,
+`pettingzoo_env_to_vec_env_v1` makes the AVs sub-envs, so one network serves them all); copy i plays its own
+episode seeds, below the evaluation seeds. `ppo_kwargs(train_config)` sets SB3's PPO as `cosim train` is set, with
+`VelocityMapExtractor` (the paper's Conv3D stack) under its policy; a saved model loads by `load_actor(path)`,
+which acts on a batch of observations.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecMonitor
 from supersuit.vector import MakeCPUAsyncConstructor
 from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 
+from agents.config import TrainConfig
 from agents.model import VelocityMapEncoder
 from cosim.config import EVAL_SEED_START, Config
 from cosim.errors import ConfigError
@@ -45,8 +47,17 @@ class VelocityMapExtractor(BaseFeaturesExtractor):
         return self.encoder(obs / self.scale)
 
 
-# A hidden layer of 256 for the actor and the critic each, over the shared extractor (the paper's Table 1).
-POLICY_KWARGS = {"features_extractor_class": VelocityMapExtractor, "net_arch": [256], "normalize_images": False}
+def ppo_kwargs(tc: TrainConfig, n_steps: int, batch: int) -> dict[str, Any]:
+    """SB3 PPO's arguments from the config's `train:` section: the same network (the paper's encoder, then one
+    hidden layer for the actor and one for the critic) and the same PPO settings as `cosim train`; `batch` is
+    the agent-samples one rollout of `n_steps` per sub-env collects."""
+    return {"n_steps": n_steps, "batch_size": max(1, batch // tc.ppo_minibatches), "n_epochs": tc.ppo_epochs,
+            "learning_rate": tc.lr, "gamma": tc.gamma, "gae_lambda": tc.gae_lambda, "clip_range": tc.clip_range,
+            "ent_coef": tc.entropy_coef, "vf_coef": tc.value_coef, "max_grad_norm": tc.max_grad_norm,
+            "normalize_advantage": tc.normalize_advantage,
+            "policy_kwargs": {"features_extractor_class": VelocityMapExtractor,
+                              "features_extractor_kwargs": {"features_dim": tc.feature_dim},
+                              "net_arch": [tc.head_hidden], "normalize_images": False}}
 
 
 class _SummaryRenamed(VecEnvWrapper):
@@ -71,9 +82,10 @@ def _agents_as_envs(config: dict[str, Any], first_seed: int) -> Any:
 
 
 def make_vec_env(config: Config, envs: int, seed: int) -> VecEnv:
-    """`envs` env copies in processes of their own, all their AVs as sub-envs (module doc)."""
+    """`envs` env copies (each in a process of its own when there are several), all their AVs as sub-envs."""
     if (seed * envs + envs) * EPISODES_PER_COPY > EVAL_SEED_START:
-        raise ConfigError(f"--seed {seed}: its episode seeds would reach the evaluation seeds ({EVAL_SEED_START:,})")
+        raise ConfigError(f"--seed {seed} with --envs {envs}: the episode seeds would reach the evaluation seeds "
+                          f"({EVAL_SEED_START:,}); at most (seed + 1) * envs = {EVAL_SEED_START // EPISODES_PER_COPY}")
     # Not ss.concat_vec_envs_v1: it clones one env, so that every copy would play the same episodes.
     fns = [functools.partial(_agents_as_envs, config.to_dict(), (seed * envs + i) * EPISODES_PER_COPY)
            for i in range(envs)]

@@ -61,6 +61,18 @@ def sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], b
     backend = backend or Backend()
     backend.check()
     out = Path(out).resolve()  # Ray tasks on other machines find it there (a shared file system)
+    # Joined first: a cluster that cannot take the runs fails before any work is done.
+    cluster = _RayRuns(backend, cfg, eval_workers) if backend.name == "ray" else None
+    try:
+        return _sweep(cfg, out, phis, seeds, budget_min, eval_episodes, eval_workers, baselines, command, cluster)
+    finally:
+        if cluster is not None:
+            cluster.close()
+
+
+def _sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], budget_min: float,
+           eval_episodes: int, eval_workers: int, baselines: Sequence[str], command: str,
+           cluster: _RayRuns | None) -> dict[str, Any]:
     walls: dict[str, float] = _load_walls(out)
     for name in baselines:
         t0 = time.perf_counter()
@@ -73,7 +85,7 @@ def sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], b
     result: dict[str, Any] = {}
     args = (cfg, out, budget_min, eval_episodes, eval_workers)
     runs = run_order(phis, seeds)
-    finished = _runs_on_ray(runs, args, backend) if backend.name == "ray" else (
+    finished = cluster.run(runs, args) if cluster is not None else (
         _train_and_evaluate(*args, phi, seed) for phi, seed in runs)
     for run_walls in finished:
         for key, seconds in run_walls.items():
@@ -84,35 +96,52 @@ def sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], b
     return result
 
 
-def _runs_on_ray(runs: Sequence[tuple[float, int]], args: tuple, backend: Backend) -> Iterator[dict[str, float]]:
-    """The runs as Ray tasks over the cluster, as many at once as it has CPUs for (a run takes one for its learner
-    and one per rollout actor); yields each run's wall times as it finishes, in the order they finish."""
-    from agents.ray_pool import connect
+class _RayRuns:
+    """The sweep's runs as Ray tasks over the cluster, as many at once as it has CPUs for: a run's task takes
+    one for its learner (or its evaluation's workers, if more), and its rollout actors one each."""
 
-    per_run = train_config(args[0]).workers + 1
-    ray, started = connect(backend.ray_address, per_run)
-    try:
-        parallel = int(ray.cluster_resources().get("CPU", 0)) // per_run
-        if parallel < 1:
-            raise ConfigError(f"train.workers = {per_run - 1}: a run needs {per_run} CPUs of the Ray cluster (its "
-                              f"learner and its rollout actors), the cluster has {ray.cluster_resources().get('CPU')}")
-        log.info("%d runs on Ray, %d at a time", len(runs), parallel)
-        task = ray.remote(num_cpus=1, max_retries=0)(_train_and_evaluate)
+    def __init__(self, backend: Backend, cfg: Config, eval_workers: int) -> None:
+        from agents.ray_pool import connect
+
+        workers = train_config(cfg).workers
+        self.task_cpus = max(1, eval_workers)
+        per_run = workers + self.task_cpus
+        self.ray, self.started = connect(backend.ray_address, per_run)
+        cpus = self.ray.cluster_resources().get("CPU", 0)
+        self.parallel = int(cpus) // per_run
+        if self.parallel < 1:
+            self.close()
+            raise ConfigError(f"train.workers = {workers}, --eval-workers {eval_workers}: a run needs {per_run} CPUs "
+                              f"of the Ray cluster (its learner or evaluation, and its rollout actors), the cluster "
+                              f"has {cpus:g}")
+
+    def run(self, runs: Sequence[tuple[float, int]], args: tuple) -> Iterator[dict[str, float]]:
+        """Yields each run's wall times as it finishes, in the order they finish."""
+        ray = self.ray
+        log.info("%d runs on Ray, %d at a time", len(runs), self.parallel)
+        task = ray.remote(num_cpus=self.task_cpus, max_retries=0)(_train_and_evaluate)
         queue, pending = list(runs), {}
-        while queue or pending:
-            while queue and len(pending) < parallel:
-                phi, seed = queue.pop(0)
-                pending[task.remote(*args, phi, seed, "ray")] = run_name(phi, seed)
-            (done,), _ = ray.wait(list(pending), num_returns=1)
-            name = pending.pop(done)
-            try:
-                yield ray.get(done)
-            except ray.exceptions.RayTaskError as exc:  # the run's own error, as the local sweep would raise it
-                raise (exc.cause if isinstance(exc.cause, Exception) else SimulationError(f"{name}: {exc}")) from None
-            log.info("finished %s", name)
-    finally:
-        if started:
-            ray.shutdown()
+        try:
+            while queue or pending:
+                while queue and len(pending) < self.parallel:
+                    phi, seed = queue.pop(0)
+                    pending[task.remote(*args, phi, seed, "ray")] = run_name(phi, seed)
+                (done,), _ = ray.wait(list(pending), num_returns=1)
+                name = pending.pop(done)
+                try:
+                    yield ray.get(done)
+                except ray.exceptions.RayTaskError as exc:  # the run's own error, as the local sweep raises it
+                    cause = exc.cause if isinstance(exc.cause, Exception) else SimulationError(f"{name}: {exc}")
+                    raise cause from None
+                log.info("finished %s", name)
+        finally:  # stopped or failed: the other runs stop too (each resumes from its last checkpoint)
+            for ref in pending:
+                ray.cancel(ref, force=True)
+
+    def close(self) -> None:
+        if self.started:
+            self.ray.shutdown()
+            self.started = False
 
 
 def run_order(phis: Sequence[float], seeds: Sequence[int]) -> list[tuple[float, int]]:

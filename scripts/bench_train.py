@@ -14,7 +14,6 @@ acting, moving observations) and learning. Results are logged and, with `--json`
 from __future__ import annotations
 
 import argparse
-import csv
 import itertools
 import json
 import logging
@@ -26,6 +25,7 @@ from typing import Any
 import torch
 
 from agents.config import use_bf16
+from agents.evaluate import read_rows
 from agents.losses import actor_critic_loss
 from agents.model import ActorCritic
 from agents.rollout import BACKENDS
@@ -44,8 +44,7 @@ def bench_workers(args: argparse.Namespace, algo: str, preset: str) -> list[dict
             res = train(cfg, Path(tmp) / "run", workers=workers, budget_min=args.seconds / 60.0, device=args.device,
                         progress=False, backend=backend)
             # How far it learnt in that time: the crash rate of its last 100 training episodes (sampled actions).
-            with (Path(tmp) / "run" / "episodes.csv").open(newline="") as f:
-                last = [float(r["crashed"]) for r in list(csv.DictReader(f))[-100:]]
+            last = [float(r["crashed"]) for r in read_rows(Path(tmp) / "run" / "episodes.csv")[-100:]]
         busy = res.rollout_s + res.update_s
         rows.append({"algo": algo, "preset": preset, "backend": backend, "workers": workers, "episodes": res.episodes,
                      "updates": res.updates, "samples": res.new_samples, "wall_s": round(res.wall_s, 1),

@@ -6,7 +6,8 @@
 
 How another library plugs in (`agents/sb3.py`): the env is a PettingZoo ParallelEnv (`cosim.parallel_env`);
 SuperSuit's wrappers make every AV of `--envs` env copies (one process, one SUMO each) a sub-env of one
-vector env, so one network is shared by all AVs; the policy's features extractor is the paper's Conv3D stack.
+vector env, so one network is shared by all AVs; the policy's features extractor is the paper's Conv3D stack,
+and the config's `train:` section sets PPO as for `cosim train` (`--set train.lr=...` applies).
 The saved `model.zip` is evaluated by `cosim evaluate --policy sb3` on the evaluation seeds, with the same
 metrics and files as the project's own policies.
 """
@@ -32,15 +33,15 @@ def train_sb3(config: Config, out: Path, steps: int, envs: int, seed: int) -> Pa
     from stable_baselines3 import PPO
     from stable_baselines3.common.utils import set_random_seed
 
-    from agents.sb3 import POLICY_KWARGS, make_vec_env
+    from agents.config import train_config
+    from agents.sb3 import make_vec_env, ppo_kwargs
 
+    tc = train_config(config)  # lr, gamma, epochs, network sizes... as `cosim train` uses them
     vec = make_vec_env(config, envs, seed)
     set_random_seed(seed)  # not PPO(seed=...): SuperSuit's process vector env has no seed() to pass it on to
     try:
-        # The project's PPO settings (configs/default.yaml), in SB3's terms.
-        model = PPO("MlpPolicy", vec, n_steps=128, batch_size=256, n_epochs=2, learning_rate=2.5e-4, gamma=0.95,
-                    gae_lambda=0.95, ent_coef=0.01, clip_range=0.2, max_grad_norm=0.5, device="cpu",
-                    policy_kwargs=POLICY_KWARGS)
+        n_steps = 128  # per sub-env (AV) and rollout
+        model = PPO("MlpPolicy", vec, device=tc.device, **ppo_kwargs(tc, n_steps, n_steps * vec.num_envs))
         model.learn(total_timesteps=steps)
     finally:
         vec.close()

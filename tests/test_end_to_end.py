@@ -3,7 +3,6 @@ processes), then `cosim evaluate` of the trained run, through the CLI."""
 
 from __future__ import annotations
 
-import csv
 import json
 import re
 import shlex
@@ -12,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from agents.checkpoint import read_checkpoint
+from agents.evaluate import read_rows
 from cosim.cli import main
 from cosim.config import EVAL_SEED_START
 
@@ -22,11 +22,6 @@ def readme_main_job() -> list[list[str]]:
     """The `cosim` commands of the README's main-job line, as argument lists."""
     line = next(ln for ln in (ROOT / "README.md").read_text().splitlines() if "&& cosim train" in ln)
     return [shlex.split(cmd)[1:] for cmd in re.split(r"\s*&&\s*", line) if cmd.strip().startswith("cosim ")]
-
-
-def rows(path: Path) -> list[dict[str, str]]:
-    with path.open() as f:
-        return list(csv.DictReader(f))
 
 
 def test_readme_main_job_trains_then_evaluates_the_trained_run(tmp_path: Path,
@@ -40,7 +35,7 @@ def test_readme_main_job_trains_then_evaluates_the_trained_run(tmp_path: Path,
     monkeypatch.chdir(ROOT)
 
     assert main(train_args) == 0
-    trained = rows(run / "episodes.csv")
+    trained = read_rows(run / "episodes.csv")
     assert len(trained) == 16  # train.episodes of the smoke config, no more
     assert all(int(r["seed"]) < EVAL_SEED_START for r in trained)
     updates = read_checkpoint(run / "checkpoint.pt")["counters"]["updates"]
@@ -49,7 +44,7 @@ def test_readme_main_job_trains_then_evaluates_the_trained_run(tmp_path: Path,
     assert main(eval_args) == 0
     summary = json.loads((run / "eval" / "summary.json").read_text())
     assert summary["policy"] == "checkpoint" and summary["trained_updates"] == updates  # the trained state
-    evaluated = rows(run / "eval" / "episodes.csv")
+    evaluated = read_rows(run / "eval" / "episodes.csv")
     assert [int(r["seed"]) for r in evaluated] == [EVAL_SEED_START + i for i in range(3)]
     crashed = [r["crashed"] == "True" for r in evaluated]
     assert summary["episodes"] == 3

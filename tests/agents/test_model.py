@@ -62,3 +62,14 @@ def test_act_on_read_only_numpy_views() -> None:
 def test_too_small_observation_is_a_clear_error() -> None:
     with pytest.raises(ConfigError, match="too small"):
         ActorCritic((1, 4, 2, 2))
+
+
+def test_weights_saved_before_the_encoder_module_still_load() -> None:
+    # Checkpoints of earlier versions name the encoder's layers conv.* / fc.* (no "features." prefix).
+    torch.manual_seed(0)
+    saved = ActorCritic((5, 4, 32, 128), feature_dim=32, head_hidden=16)
+    old_names = {k.removeprefix("features."): v for k, v in saved.state_dict().items()}
+    assert "conv.0.weight" in old_names
+    net = ActorCritic((5, 4, 32, 128), feature_dim=32, head_hidden=16)
+    net.load_state_dict(old_names)
+    assert all(torch.equal(v, net.state_dict()[k]) for k, v in saved.state_dict().items())

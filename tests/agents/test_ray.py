@@ -1,9 +1,9 @@
 """The Ray backend on a local Ray with 2 CPUs: the rollout contract, failures, and training like the local backend."""
 
-import csv
 import json
 import os
 import signal
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from agents.checkpoint import read_checkpoint
+from agents.evaluate import read_rows
 from agents.fake_env import CueEnv, make_fake_env
 from agents.rollout import Backend
 from agents.sweep import sweep
@@ -29,11 +30,6 @@ def local_ray() -> Iterator[None]:
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     yield
     ray.shutdown()
-
-
-def rows(run: Path) -> list[dict[str, str]]:
-    with (run / "episodes.csv").open() as f:
-        return list(csv.DictReader(f))
 
 
 def test_actors_deliver_the_envs_observations_exactly() -> None:
@@ -78,6 +74,8 @@ def test_a_dead_or_silent_actor_is_restarted_and_its_episode_lost(sig: signal.Si
         assert not r.lost and r.alive.all() and pool.obs[0].any()
     finally:
         pool.close()
+    # The dead actor's temporary folder went too (the env writes SUMO's files there).
+    assert not list(Path(tempfile.gettempdir()).glob(f"cosim_actor_{pool.pool_id}_*"))
 
 
 def test_bad_input_and_hopeless_envs_stop_the_run() -> None:
@@ -95,7 +93,7 @@ def test_a_failing_actor_in_training_is_restarted_and_its_episode_not_counted(tm
                    env_factory=make_fake_env(n_agents=2, fail_once_file=str(flag), fail_at_step=3,
                                              fail_by_exit=by_exit))
     assert flag.exists() and result.restarts == 1 and result.lost_episodes == 1
-    assert len(rows(tmp_path / "run")) == result.episodes == 8
+    assert len(read_rows(tmp_path / "run" / "episodes.csv")) == result.episodes == 8
 
 
 def test_ray_trains_the_smoke_config_like_the_local_backend_and_resumes(tmp_path: Path) -> None:
@@ -106,7 +104,7 @@ def test_ray_trains_the_smoke_config_like_the_local_backend_and_resumes(tmp_path
     train(cfg, tmp_path / "ray", workers=2, episodes=4, backend="ray", progress=False)
     resumed = train(cfg, tmp_path / "ray", workers=2, episodes=8, resume=True, backend="ray", progress=False)
     assert (resumed.episodes, resumed.updates, resumed.samples) == (local.episodes, local.updates, local.samples)
-    assert rows(tmp_path / "ray") == rows(tmp_path / "local")
+    assert read_rows(tmp_path / "ray" / "episodes.csv") == read_rows(tmp_path / "local" / "episodes.csv")
     a, b = (read_checkpoint(r.checkpoint)["policy"]["nets"][0] for r in (local, resumed))
     assert all(torch.equal(v, b[k]) for k, v in a.items())
 
@@ -127,6 +125,7 @@ def test_sweep_runs_its_runs_as_ray_tasks(tmp_path: Path) -> None:
     walls = json.loads((out / "walls.json").read_text())
     assert {"train phi_0.0000_seed_0", "train phi_0.7854_seed_0", "evaluate phi_0.7854_seed_0"} <= set(walls)
     assert (out / "report.md").is_file() and read_checkpoint(out / "runs" / "phi_0.0000_seed_0" / "checkpoint.pt")
-    with pytest.raises(ConfigError, match="a run needs 3 CPUs"):
+    with pytest.raises(ConfigError, match="a run needs 4 CPUs"):  # 2 rollout actors, 2 evaluation workers
         sweep(load_config("configs/smoke.yaml"), tmp_path / "big", [0.0], [0], budget_min=0.05, eval_episodes=2,
-              baselines=("idle",), backend=Backend("ray"))
+              eval_workers=2, baselines=("idle",), backend=Backend("ray"))
+    assert not (tmp_path / "big").exists()  # refused before any work

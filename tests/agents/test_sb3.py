@@ -7,13 +7,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 import cosim
 from cosim.errors import ConfigError
 
 pytest.importorskip("stable_baselines3")
 pytest.importorskip("supersuit")
-from agents.sb3 import load_actor  # noqa: E402 - only where the extra is installed
+from stable_baselines3 import PPO  # noqa: E402 - only where the extra is installed
+
+from agents.sb3 import load_actor  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -39,6 +42,16 @@ def test_sb3_trains_on_the_env_and_its_model_evaluates_like_any_policy(tmp_path:
     assert ev.returncode == 0, ev.stderr[-3000:]
     summary = json.loads((tmp_path / "eval" / "summary.json").read_text())
     assert summary["episodes"] == 2
+
+    # A model retrained into the same file must not resume the evaluation of the old one.
+    ppo = PPO.load(model, device="cpu")
+    with torch.no_grad():
+        next(ppo.policy.parameters()).add_(1.0)
+    ppo.save(model)
+    ev = subprocess.run([sys.executable, "-m", "cosim.cli", "evaluate", "--config", "configs/smoke.yaml", "--policy",
+                         "sb3", "--checkpoint", str(model), "--episodes", "3", "--no-plots", "--out",
+                         str(tmp_path / "eval")], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert ev.returncode == 2 and "model_sha256" in ev.stderr and "Traceback" not in ev.stderr
 
     again = subprocess.run([sys.executable, "scripts/train_sb3.py", "--config", "configs/smoke.yaml",
                             "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=120)
