@@ -20,6 +20,7 @@ from typing import Any
 import yaml
 
 from cosim.errors import ConfigError
+from cosim.reward import TERMS
 
 # A stacked VelocityMap of the paper's size vs one that trains on a CPU; user keys override a preset.
 OBSERVATION_PRESETS: dict[str, dict[str, Any]] = {
@@ -29,21 +30,9 @@ OBSERVATION_PRESETS: dict[str, dict[str, Any]] = {
 CHANNELS = ("road", "avs", "hvs", "ego_merger")
 # Episode seeds from here on are evaluation's; training draws its seeds below, so the two never meet.
 EVAL_SEED_START = 10_000_000
-AV_DRIVERS = ("env", "sumo")
+AV_DRIVERS = ("env", "sumo")  # who drives the AVs: the agents through the env, or SUMO's own models
 PLACEMENTS = ("window", "stream")  # keys of cosim.scenario.PLACEMENTS
-ON_COLLISION = ("end", "remove")  # who drives the AVs: the agents through the env, or SUMO's own models
-# Named terms of a vehicle's individual utility and their default weights (see cosim.reward).
-REWARD_TERMS: dict[str, float] = {
-    "speed": 1.0,  # progress this decision period / (max speed * period), in [0, 1]
-    "lane_change": 0.05,  # an AV lane change (cost)
-    "invalid_action": 0.1,  # an AV lane change toward no lane (cost)
-    "accel": 0.05,  # |speed change| / (AV max accel * period) (cost, every vehicle)
-    "collision": 5.0,  # the vehicle crashed this period (cost); -5 as in the authors' follow-up code
-    # The merging vehicle reached a through lane this period (bonus); +10 as in the authors' follow-up code. With
-    # +2, letting it in lowered the guide AV's own discounted return at phi = pi/4 (courteous 41.5 vs scripted
-    # 42.3 over 60 episodes); with +10 it raises it (45.3 vs 42.8): the dilemma has an altruistic answer.
-    "merge": 10.0,
-}
+ON_COLLISION = ("end", "remove")  # a collision with an AV or the merging vehicle ends the episode, or is removed
 
 
 # The bundled 2-lane merge with a long approach (sumo_net/dilemma), the net of every config that names none.
@@ -179,11 +168,11 @@ class ObservationConfig:
 class RewardConfig:
     # SVO angle [rad]: one value for all AVs, or one per AV. 0 egoistic, pi/4 altruistic, pi/2 fully.
     phi: float | tuple[float, ...] = 0.0
-    # Weights of the named utility terms (REWARD_TERMS); unlisted terms keep their default.
+    # Weights of the named utility terms (cosim.reward.TERMS); unlisted terms keep their default.
     weights: Mapping[str, float] = field(default_factory=dict)
 
     def weight(self, term: str) -> float:
-        return float(self.weights.get(term, REWARD_TERMS[term]))
+        return float(self.weights.get(term, TERMS[term].weight))
 
 
 @dataclass(frozen=True)
@@ -484,9 +473,9 @@ def validate(cfg: Config) -> None:
                           f"{list(obs.channels)}")
     if obs.dtype not in ("float32", "float16", "uint8"):
         raise ConfigError(f"observation.dtype: expected float32, float16 or uint8, got {obs.dtype!r}")
-    unknown_terms = sorted(set(cfg.reward.weights) - set(REWARD_TERMS))
+    unknown_terms = sorted(set(cfg.reward.weights) - set(TERMS))
     if unknown_terms:
-        raise ConfigError(f"reward.weights.{unknown_terms[0]}: unknown term; expected one of {sorted(REWARD_TERMS)}")
+        raise ConfigError(f"reward.weights.{unknown_terms[0]}: unknown term; expected one of {sorted(TERMS)}")
     phis = cfg.reward.phi
     if isinstance(phis, tuple) and len(phis) != sc.n_avs:
         raise ConfigError(f"reward.phi: a list needs one angle per AV ({sc.n_avs}), got {len(phis)}")

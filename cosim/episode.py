@@ -3,11 +3,15 @@
 Contract: `MergeZone.from_net(desc, road)` turns the net description into edge indices once;
 `merge_status(snap, zone, stuck_speed, stuck_distance)` says whether the merging vehicle is on a through
 lane of the highway (merged), stuck at the end of the acceleration lane (SUMO would hold it there forever:
-a failed merge), crashed, or gone.
+a failed merge), crashed, or gone. `ENDINGS` is the registry of the conditions that end an episode for every
+agent (the paper's first collision, the merging vehicle crashed, stuck or gone, the horizon), each a named
+function of an `EndCheck`; `episode_end(check)` names the first that holds (None: the episode goes on).
+Adding a condition is one function and one line: `@ending("name")` above it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,3 +85,58 @@ def merge_status(snap: Snapshot, zone: MergeZone, stuck_speed: float, stuck_dist
     stuck = (snap.edge[r] == zone.merge_edge and int(snap.lane[r]) in zone.accel_lanes
              and snap.lane_pos[r] >= zone.accel_end - stuck_distance and snap.speed[r] < stuck_speed)
     return MergeStatus(row=r, merged=merged, stuck=bool(stuck), crashed=crashed)
+
+
+@dataclass(frozen=True)
+class EndCheck:
+    """What the episode-end conditions look at after a decision step."""
+
+    snap: Snapshot
+    status: MergeStatus
+    merged: bool  # the merging vehicle has merged in this episode
+    steps: int  # decision steps so far
+    max_steps: int
+    stop_on: frozenset[int]  # KIND_* whose collisions end the episode (sim.on_collision: end); empty: none do
+    end_on_stuck: bool  # sim.end_on_stuck
+
+
+ENDINGS: dict[str, Callable[[EndCheck], bool]] = {}  # checked in registration order
+
+
+def ending(name: str) -> Callable[[Callable[[EndCheck], bool]], Callable[[EndCheck], bool]]:
+    """Register a condition that ends the episode for every agent."""
+    def register(fn: Callable[[EndCheck], bool]) -> Callable[[EndCheck], bool]:
+        ENDINGS[name] = fn
+        return fn
+
+    return register
+
+
+@ending("collision")  # the paper's rule: the first collision that involves an AV or the merging vehicle
+def _collision(c: EndCheck) -> bool:
+    return any(x.collider_kind in c.stop_on or x.victim_kind in c.stop_on for x in c.snap.collisions)
+
+
+@ending("merger_crashed")
+def _merger_crashed(c: EndCheck) -> bool:
+    return c.status.crashed
+
+
+@ending("merger_stuck")
+def _merger_stuck(c: EndCheck) -> bool:
+    return c.status.stuck and c.end_on_stuck
+
+
+@ending("merger_gone")  # off the road without merging: it can only have been taken off (a removed collider)
+def _merger_gone(c: EndCheck) -> bool:
+    return c.status.row < 0 and not c.merged
+
+
+@ending("horizon")
+def _horizon(c: EndCheck) -> bool:
+    return c.steps >= c.max_steps
+
+
+def episode_end(check: EndCheck) -> str | None:
+    """The name of the first ending that holds; None while the episode goes on."""
+    return next((name for name, holds in ENDINGS.items() if holds(check)), None)

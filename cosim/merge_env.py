@@ -42,12 +42,12 @@ from pettingzoo.utils.conversions import parallel_to_aec
 
 from cosim.config import Config, load_config
 from cosim.control import N_ACTIONS, decide
-from cosim.episode import MergeZone, merge_status
+from cosim.episode import EndCheck, MergeZone, episode_end, merge_status
 from cosim.errors import SimulationError
 from cosim.metrics import Chainage, EpisodeTracker
 from cosim.netdesc import load_net_description
 from cosim.outputs import SumoOutputs, detector_site, episode_folder, episode_output_args, read_episode_outputs
-from cosim.reward import svo_rewards, utility_terms, weighted_utility
+from cosim.reward import StepChange, svo_rewards, utility_terms, weighted_utility
 from cosim.roadnet import load_roadnet
 from cosim.scenario import av_id, kind_of, plan_episode, write_episode
 from cosim.session import SumoSession
@@ -159,11 +159,9 @@ class MergeEnv(ParallelEnv):
         merged = self.tracker.merged_at is not None
         rewards, terms, ego_u, social_u = self._rewards(prev, snap, rows, lane_changed, invalid, status.row,
                                                         merged and not merged_before)
-        # A merging vehicle gone without merging can only have been taken off the road: over too.
-        collided = any(c.collider_kind in self._stop_on or c.victim_kind in self._stop_on for c in snap.collisions)
-        stuck = status.stuck and self.cfg.sim.end_on_stuck
-        cut = (collided or status.crashed or stuck or (status.row < 0 and not merged)
-               or self.tracker.steps >= self.max_steps)
+        ended_by = episode_end(EndCheck(snap, status, merged, self.tracker.steps, self.max_steps, self._stop_on,
+                                        self.cfg.sim.end_on_stuck))
+        cut = ended_by is not None
         obs, rew, term, trunc, infos = {}, {}, {}, {}, {}
         for a in acting:
             i = self.possible_agents.index(a)
@@ -181,7 +179,8 @@ class MergeEnv(ParallelEnv):
             self.session.remove([v for v, c in zip(snap.ids, snap.crashed, strict=True) if c])
         self._snap = snap
         if not self.agents:
-            summary = self.episode_summary(snap, stuck=status.stuck)
+            # Not cut: every AV's own episode ended (crashed or left the net).
+            summary = self.episode_summary(snap, stuck=status.stuck, ended_by=ended_by or "agents_done")
             for a in acting:
                 infos[a]["episode"] = summary
         return obs, rew, term, trunc, infos
@@ -244,9 +243,8 @@ class MergeEnv(ParallelEnv):
         v_invalid[rows[present]] = invalid[present]
         if merged_now:
             v_merged[merger_row] = True
-        raw = utility_terms(snap.distance - prev_d, snap.speed - prev_v, v_lane, v_invalid, snap.crashed,
-                            v_merged, max_speed=self.cfg.av.max_speed, max_accel=self.cfg.av.accel,
-                            period=period)
+        raw = utility_terms(StepChange(snap.distance - prev_d, snap.speed - prev_v, v_lane, v_invalid, snap.crashed,
+                                       v_merged, self.cfg.av.max_speed, self.cfg.av.accel, period))
         weighted = weighted_utility(raw, self.cfg.reward)
         utility = sum(weighted.values())
         observed = self.mapper.observed(snap, rows)
@@ -257,11 +255,12 @@ class MergeEnv(ParallelEnv):
         return reward, terms, ego, social
 
     # -- summaries and rendering --------------------------------------------------------------------
-    def episode_summary(self, snap: Snapshot, stuck: bool) -> dict[str, Any]:
+    def episode_summary(self, snap: Snapshot, stuck: bool, ended_by: str) -> dict[str, Any]:
         """Outcome of the episode for metrics: the tracker's row (length, time, crash, merge and time to merge,
-        distances [m] and speeds [m/s] by class over every vehicle seen, ...), the seed, and `merge_failed`
-        (the merging vehicle got `stuck`). `snap` is the last snapshot, which the tracker has seen."""
-        return {"seed": self.episode_seed, **self.tracker.row(), "merge_failed": stuck}
+        distances [m] and speeds [m/s] by class over every vehicle seen, ...), the seed, `merge_failed` (the
+        merging vehicle got `stuck`) and `ended_by` (the `cosim.episode.ENDINGS` name that ended it, or
+        agents_done). `snap` is the last snapshot, which the tracker has seen."""
+        return {"seed": self.episode_seed, **self.tracker.row(), "merge_failed": stuck, "ended_by": ended_by}
 
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array" or self._snap is None:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cosim.collisions import LaneChangeClock, attribute
-from cosim.episode import MergeZone
+from cosim.episode import ENDINGS, EndCheck, MergeStatus, MergeZone, episode_end
 from cosim.metrics import Chainage, EpisodeTracker
 from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Collision, Snapshot
 
@@ -91,3 +91,22 @@ def test_tracker_reports_causes_and_the_distance_of_vehicles_that_left() -> None
     assert tr.distance["hv_1"] == pytest.approx(20.0)  # it drove on to the end of its route
     assert row["crashed"] and row["cause_av"] and not row["cause_hv_into_av"] and not row["cause_merger"]
     assert row["crash_kind"] == "rear_end" and row["collisions"] == "0.7 av_0>hv_0 rear_end fault=av_0 av"
+
+
+def test_episode_endings_are_named_and_checked_in_order() -> None:
+    assert list(ENDINGS) == ["collision", "merger_crashed", "merger_stuck", "merger_gone", "horizon"]
+    hv_hits_av = Collision(1.0, "hv", "av", KIND_HV, KIND_AV, "collision", "e_0")
+    snap = Snapshot.build(ids=["av", "hv"], collisions=[hv_hits_av])
+    calm = Snapshot.build(ids=["av", "hv"])
+    waiting, stuck, gone = (MergeStatus(0, False, False, False), MergeStatus(0, False, True, False),
+                            MergeStatus(-1, False, False, False))
+
+    def end(snap: Snapshot = calm, status: MergeStatus = waiting, merged: bool = False, steps: int = 3,
+            stop_on: frozenset[int] = frozenset({KIND_AV}), end_on_stuck: bool = True) -> str | None:
+        return episode_end(EndCheck(snap, status, merged, steps, 20, stop_on, end_on_stuck))
+
+    assert end() is None
+    assert end(snap) == "collision" and end(snap, stop_on=frozenset()) is None  # on_collision: remove
+    assert end(status=stuck) == "merger_stuck" and end(status=stuck, end_on_stuck=False) is None
+    assert end(status=gone) == "merger_gone" and end(status=gone, merged=True) is None
+    assert end(steps=20) == "horizon" and end(snap, steps=20) == "collision"

@@ -230,6 +230,7 @@ def test_stuck_merging_vehicle_fails_the_merge(end_on_stuck: bool) -> None:
     assert all(trunc[a] != term[a] for a in trunc) and any(trunc.values())
     # Cut once it is stuck, or (the default) it waits at the lane's end to the horizon, as SUMO's driver would.
     assert (summary["length"] < env.max_steps) == end_on_stuck
+    assert summary["ended_by"] == ("merger_stuck" if end_on_stuck else "horizon")
 
 
 def test_time_limit_truncates() -> None:

@@ -7,8 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from cosim.config import REWARD_TERMS, ObservationConfig, RewardConfig
-from cosim.reward import svo_rewards, utility_terms, weighted_utility
+import cosim
+from cosim.config import ObservationConfig, RewardConfig, load_config
+from cosim.errors import ConfigError
+from cosim.reward import TERMS, StepChange, svo_rewards, term, utility_terms, weighted_utility
 from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
 from cosim.velocity_map import RoadRaster, VelocityMapper
 
@@ -68,12 +70,12 @@ def test_absent_agent_and_gone_merger() -> None:
 
 
 def test_utility_terms_and_weights() -> None:
-    terms = utility_terms(
+    terms = utility_terms(StepChange(
         progress=np.array([33.0, 16.5, 0.0]), speed_change=np.array([0.0, -3.0, 1.5]),
         lane_changed=np.array([True, False, False]), invalid=np.array([False, True, False]),
         crashed=np.array([False, False, True]), merged_now=np.array([False, False, True]),
         max_speed=33.0, max_accel=3.0, period=1.0,
-    )
+    ))
     assert terms["speed"].tolist() == [1.0, 0.5, 0.0]
     assert terms["accel"].tolist() == [0.0, -1.0, -0.5]
     assert terms["lane_change"].tolist() == [-1.0, 0.0, 0.0]
@@ -82,6 +84,26 @@ def test_utility_terms_and_weights() -> None:
     assert terms["merge"].tolist() == [0.0, 0.0, 1.0]
     cfg = RewardConfig(weights={"speed": 2.0})
     weighted = weighted_utility(terms, cfg)
-    assert set(weighted) == set(REWARD_TERMS)
+    assert list(weighted) == list(TERMS) == ["speed", "lane_change", "invalid_action", "accel", "collision", "merge"]
     assert weighted["speed"].tolist() == [2.0, 1.0, 0.0]
-    assert weighted["collision"].tolist() == [0.0, 0.0, -REWARD_TERMS["collision"]]
+    assert weighted["collision"].tolist() == [0.0, 0.0, -TERMS["collision"].weight]
+
+
+def test_a_new_term_is_one_function_and_one_line() -> None:
+    @term("constant", 0.5)
+    def _constant(s: StepChange) -> np.ndarray:
+        return np.ones_like(s.progress)
+
+    try:
+        # Its weight is a config key, and every agent's infos report it, weighted, on real SUMO.
+        env = cosim.parallel_env("configs/smoke.yaml", {"reward.weights.constant": 2.0})
+        try:
+            env.reset(seed=3)
+            _, _, _, _, infos = env.step({a: 1 for a in env.agents})
+        finally:
+            env.close()
+        assert infos and all(info["reward_terms"]["constant"] == 2.0 for info in infos.values())
+    finally:
+        del TERMS["constant"]
+    with pytest.raises(ConfigError, match="reward.weights.constant: unknown term"):
+        load_config("configs/smoke.yaml", {"reward.weights.constant": 2.0})
