@@ -179,7 +179,7 @@ class MergeEnv(ParallelEnv):
             self.session.remove([v for v, c in zip(snap.ids, snap.crashed, strict=True) if c])
         self._snap = snap
         if not self.agents:
-            # Not cut: every AV's own episode ended (crashed or left the net).
+            # ended_by None: nothing cut the episode, every AV's own one ended (crashed or left the net).
             summary = self.episode_summary(snap, stuck=status.stuck, ended_by=ended_by or "agents_done")
             for a in acting:
                 infos[a]["episode"] = summary
