@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
+from scipy.stats import mannwhitneyu
 
 from agents.sweep import ALTRUISTIC, EGOISTIC, median, pooled, rate, run_name
 from cosim import plots
@@ -89,6 +90,19 @@ def _find(phi_rows: Mapping[float, Any], target: float) -> float | None:
     return next((p for p in phi_rows if math.isclose(p, target, abs_tol=1e-3)), None)
 
 
+def distances(rows: Sequence[Mapping[str, str]]) -> np.ndarray:
+    """The merging vehicle's distances [m] of evaluation rows that have one."""
+    return np.array([float(r["merger_distance"]) for r in rows if r.get("merger_distance") not in (None, "", "nan")])
+
+
+def shift_p_value(egoistic: np.ndarray, altruistic: np.ndarray) -> float:
+    """p-value of a one-sided Mann-Whitney U test that altruistic distances lie farther downstream (the paper's
+    histogram: egoistic mass at the stuck position, altruistic mass beyond it); 1 without data."""
+    if len(egoistic) == 0 or len(altruistic) == 0:
+        return 1.0
+    return float(mannwhitneyu(altruistic, egoistic, alternative="greater").pvalue)
+
+
 def _accel_end_distance(out: Path) -> float:
     """[m] from the ramp's start to the end of the acceleration lane. The merging vehicle starts on the ramp,
     so one that drove farther than this certainly passed the lane's end (one that started up the ramp may have
@@ -139,11 +153,12 @@ def _claims(out: Path, phi_rows: Mapping[float, list], run_rows: Mapping[tuple[f
         beyond = {lbl: float(np.mean([float(r["merger_distance"]) > end for r in phi_rows[p]]))
                   for lbl, p in (("egoistic", ego), ("altruistic", alt))}
         med = {lbl: median(phi_rows[p], "merger_distance") for lbl, p in (("egoistic", ego), ("altruistic", alt))}
+        p_value = shift_p_value(*(distances(phi_rows[p]) for p in (ego, alt)))
         claims.append({"claim": "(3) the merging vehicle's distance shifts downstream with altruistic AVs",
-                       "holds": med["altruistic"] > med["egoistic"] and beyond["altruistic"] > beyond["egoistic"],
-                       "detail": f"median {med['egoistic']:.0f} m egoistic vs {med['altruistic']:.0f} m altruistic; "
-                                 f"driven past the acceleration lane's end (farther than its {end:.0f} m from the "
-                                 "ramp's start) in "
+                       "holds": p_value < 0.05,
+                       "detail": f"median {med['egoistic']:.1f} m egoistic vs {med['altruistic']:.1f} m altruistic; "
+                                 f"one-sided Mann-Whitney U p = {p_value:.3g} (needs p < 0.05); driven past the "
+                                 f"acceleration lane's end (farther than its {end:.0f} m from the ramp's start) in "
                                  f"{100 * beyond['egoistic']:.0f}% vs {100 * beyond['altruistic']:.0f}% of episodes"})
     flow = {phi_label(p): summarize(rows) for p, rows in phi_rows.items()}
     trade = "; ".join(f"{k}: crash {v['crash [%]']['mean']:.0f}%, merge {v['merge success [%]']['mean']:.0f}%, "

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from cosim.cli import main
@@ -43,3 +44,16 @@ def test_tiny_sweep_runs_end_to_end_and_resumes(tmp_path: Path, monkeypatch: pyt
     assert main(args) == 0
     assert (out / "report.md").is_file() and (runs[1] / "eval" / "summary.json").is_file()
     assert {r: (r / "checkpoint.pt").stat().st_mtime_ns for r in runs} == checkpoints
+
+
+def test_claim_3_needs_a_significant_shift_downstream() -> None:
+    from agents.report import shift_p_value
+
+    rng = np.random.default_rng(0)
+    stuck = 225 + rng.normal(0, 5, 150)  # egoistic: the merging vehicle waits at the lane's end
+    assert shift_p_value(stuck, 225 + rng.normal(0, 5, 150)) > 0.05  # the same distribution: no claim
+    assert shift_p_value(stuck, stuck + 0.4) > 0.05  # a sub-metre nudge of every sample is not a shift
+    released = np.concatenate([225 + rng.normal(0, 5, 100), 450 + rng.normal(0, 20, 50)])  # a third got in
+    assert shift_p_value(stuck, released) < 1e-3
+    assert shift_p_value(released, stuck) > 0.5  # one-sided: downstream only
+    assert shift_p_value(stuck, np.array([])) == 1.0
