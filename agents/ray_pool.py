@@ -84,7 +84,7 @@ def _remove_dead_actor_folders(pool_id: str) -> None:
 
 
 class _EnvActor:
-    """One env in an actor process. A failure to build the env is kept and raised by `start`, so that the
+    """One env in an actor process. A failure to build the env is kept and returned by `start`, so that the
     driver sees the env's own exception (Ray would otherwise report only that the actor died)."""
 
     def __init__(self, env_factory: EnvFactory, pool_id: str) -> None:
@@ -102,7 +102,7 @@ class _EnvActor:
             self.runner.obs, self.runner.final = np.zeros((n, *shape), dtype), np.zeros((n, *shape), dtype)
         except (ConfigError, NetError) as exc:  # bad input: the driver stops the run
             self.error = exc
-        except BaseException as exc:  # noqa: BLE001 - handed to the driver by start()
+        except BaseException as exc:  # noqa: BLE001 - returned to the driver by start()
             self.error = WorkerFailure(f"env raised {type(exc).__name__}: {exc}")
 
     def start(self) -> tuple[EnvSpec | BaseException, int]:
