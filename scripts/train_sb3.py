@@ -2,14 +2,15 @@
 
     pip install -e ".[sb3]"
     python scripts/train_sb3.py --config configs/default.yaml --steps 200000 --envs 4 --out runs/sb3
+    # trains into runs/sb3/model.zip, then evaluates it as this does (again, or on other seeds / nets):
     cosim evaluate --config configs/default.yaml --policy sb3 --checkpoint runs/sb3/model.zip --out runs/sb3/eval
 
 How another library plugs in (`agents/sb3.py`): the env is a PettingZoo ParallelEnv (`cosim.parallel_env`);
 SuperSuit's wrappers make every AV of `--envs` env copies (one process, one SUMO each) a sub-env of one
 vector env, so one network is shared by all AVs; the policy's features extractor is the paper's Conv3D stack,
 and the config's `train:` section sets PPO as for `cosim train` (`--set train.lr=...` applies).
-The saved `model.zip` is evaluated by `cosim evaluate --policy sb3` on the evaluation seeds, with the same
-metrics and files as the project's own policies.
+The saved `model.zip` is then evaluated as `cosim evaluate --policy sb3` evaluates it: on the evaluation
+seeds, with the same metrics and files as the project's own policies (`--eval-episodes 0` skips it).
 """
 
 from __future__ import annotations
@@ -58,6 +59,8 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=200_000, help="agent-steps to train (all AVs of all envs)")
     parser.add_argument("--envs", type=int, default=2, help="env copies, one process (one SUMO) each")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--eval-episodes", type=int, default=100, help="evaluation episodes after training")
+    parser.add_argument("--eval-workers", type=int, default=2, help="evaluation worker processes")
     parser.add_argument("--out", type=Path, default=Path("runs/sb3"))
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s",
@@ -68,19 +71,23 @@ def main() -> int:
         print(f"error: {exc.name} is missing; install the extra: pip install -e \".[sb3]\"", file=sys.stderr)
         return 2
     try:
-        if args.steps <= 0 or args.envs <= 0 or args.seed < 0:
-            raise CosimError("--steps and --envs: must be > 0; --seed: >= 0")
+        if args.steps <= 0 or args.envs <= 0 or args.seed < 0 or args.eval_episodes < 0 or args.eval_workers <= 0:
+            raise CosimError("--steps, --envs and --eval-workers: must be > 0; --seed and --eval-episodes: >= 0")
         if (args.out / MODEL_NAME).exists():
             raise CosimError(f"--out {args.out}: holds a {MODEL_NAME} already; choose another folder")
         config = load_config(args.config, args.overrides)
         t0 = time.perf_counter()
         path = train_sb3(config, args.out, args.steps, args.envs, args.seed)
+        log.info("trained %d agent-steps in %.0f s into %s", args.steps, time.perf_counter() - t0, path)
+        if args.eval_episodes:
+            from agents.evaluate import PolicySpec, evaluate, print_summary
+
+            summary = evaluate(config, PolicySpec("sb3", str(path.resolve())), args.out / "eval",
+                               episodes=args.eval_episodes, workers=args.eval_workers, plots=False)
+            print_summary(summary, "sb3")
     except CosimError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    log.info("trained %d agent-steps in %.0f s into %s; evaluate it with: cosim evaluate --config %s --policy sb3 "
-             "--checkpoint %s --out %s", args.steps, time.perf_counter() - t0, path, args.config, path,
-             args.out / "eval")
     return 0
 
 

@@ -24,8 +24,10 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_sb3_trains_on_the_env_and_its_model_evaluates_like_any_policy(tmp_path: Path) -> None:
     out = tmp_path / "sb3"
     done = subprocess.run([sys.executable, "scripts/train_sb3.py", "--config", "configs/smoke.yaml", "--steps", "2048",
-                           "--envs", "2", "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
+                           "--envs", "2", "--eval-episodes", "2", "--eval-workers", "1", "--out", str(out)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
+    assert json.loads((out / "eval" / "summary.json").read_text())["episodes"] == 2  # evaluated like any policy
     model = out / "model.zip"
     env = cosim.parallel_env("configs/smoke.yaml")
     shape = env.observation_space(env.possible_agents[0]).shape
