@@ -29,7 +29,16 @@ from typing import Any
 
 import numpy as np
 
-from agents.rollout import START_ATTEMPTS, START_TIMEOUT, EnvFactory, EnvSpec, StepResult, WorkerFailure, _EnvRunner
+from agents.rollout import (
+    START_ATTEMPTS,
+    START_TIMEOUT,
+    EnvFactory,
+    EnvSpec,
+    PoolCommands,
+    StepResult,
+    WorkerFailure,
+    _EnvRunner,
+)
 from cosim.errors import ConfigError, NetError, SimulationError
 
 log = logging.getLogger(__name__)
@@ -130,7 +139,7 @@ class _EnvActor:
         shutil.rmtree(self.tmp, ignore_errors=True)
 
 
-class RayWorkerPool:
+class RayWorkerPool(PoolCommands):
     """W env actors on Ray behind the interface of `agents.rollout.WorkerPool` (module doc)."""
 
     def __init__(self, env_factory: EnvFactory, workers: int, max_restarts: int = 100, timeout: float = 60.0,
@@ -239,15 +248,9 @@ class RayWorkerPool:
         except exceptions.RayError:
             pass
 
-    def _send(self, ws: Sequence[int], method: str, args: Sequence[Any]) -> None:
+    def _send(self, ws: Sequence[int], cmd: str, args: Sequence[Any]) -> None:
         for w, arg in zip(ws, args, strict=True):
-            self._pending[w] = getattr(self.actors[w], method).remote(arg)
-
-    def send_reset(self, ws: Sequence[int], seeds: Sequence[int | None]) -> None:
-        self._send(ws, "reset", seeds)
-
-    def send_step(self, ws: Sequence[int], actions: np.ndarray) -> None:
-        self._send(ws, "step", list(np.asarray(actions, dtype=np.int64)))
+            self._pending[w] = getattr(self.actors[w], cmd).remote(arg)
 
     def recv(self, ws: Sequence[int]) -> list[StepResult]:
         """Results of the last command sent to each worker of `ws`; a failed actor is restarted and `lost`."""
@@ -267,8 +270,7 @@ class RayWorkerPool:
                 if self._ready(w, dead_pid=dead_pid) != self.spec:
                     raise SimulationError(f"rollout actor {w} was restarted with another env spec") from None
                 self.obs[w] = 0
-                out.append(StepResult(np.zeros(n, bool), np.zeros(n, np.float32), np.zeros(n, bool),
-                                      np.zeros(n, bool), lost=True))
+                out.append(StepResult.lost_episode(n))
         return out
 
     def close(self) -> None:

@@ -70,6 +70,11 @@ class StepResult:
     episode: dict[str, Any] | None = None  # the env's summary when this step ended the episode
     lost: bool = False  # the env failed: the worker was replaced, the running episode is lost
 
+    @classmethod
+    def lost_episode(cls, n: int) -> StepResult:
+        """The result of a worker that failed: no agent alive, the running episode lost."""
+        return cls(np.zeros(n, bool), np.zeros(n, np.float32), np.zeros(n, bool), np.zeros(n, bool), lost=True)
+
 
 class _EnvRunner:
     """Worker side: dict-keyed PettingZoo steps <-> index-keyed arrays written into the shared slots."""
@@ -261,7 +266,20 @@ class _Worker:
         self.conn.close()
 
 
-class WorkerPool:
+class PoolCommands:
+    """The commands both backends take, as named sends to a subset of workers (`_send` per backend)."""
+
+    def _send(self, ws: Sequence[int], cmd: str, args: Sequence[Any]) -> None:
+        raise NotImplementedError
+
+    def send_reset(self, ws: Sequence[int], seeds: Sequence[int | None]) -> None:
+        self._send(ws, "reset", seeds)
+
+    def send_step(self, ws: Sequence[int], actions: np.ndarray) -> None:
+        self._send(ws, "step", list(np.asarray(actions, dtype=np.int64)))
+
+
+class WorkerPool(PoolCommands):
     """W env worker processes with shared observation slots; failed workers are replaced (module doc)."""
 
     def __init__(self, env_factory: EnvFactory, workers: int, max_restarts: int = 100, timeout: float = 60.0,
@@ -359,12 +377,6 @@ class WorkerPool:
             except WorkerFailure:
                 pass  # found at recv
 
-    def send_reset(self, ws: Sequence[int], seeds: Sequence[int | None]) -> None:
-        self._send(ws, "reset", seeds)
-
-    def send_step(self, ws: Sequence[int], actions: np.ndarray) -> None:
-        self._send(ws, "step", list(np.asarray(actions, dtype=np.int64)))
-
     def recv(self, ws: Sequence[int]) -> list[StepResult]:
         """Results of the last command sent to each worker of `ws`; a failed worker is replaced and `lost`."""
         n = len(self.spec.agents)
@@ -375,8 +387,7 @@ class WorkerPool:
             except WorkerFailure as exc:
                 self._replace(w, exc)
                 self.obs[w] = 0
-                out.append(StepResult(np.zeros(n, bool), np.zeros(n, np.float32), np.zeros(n, bool),
-                                      np.zeros(n, bool), lost=True))
+                out.append(StepResult.lost_episode(n))
         return out
 
     def close(self) -> None:
