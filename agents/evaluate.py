@@ -155,21 +155,19 @@ def _checkpoint_policy(path: Path, env: MergeEnv, greedy: bool) -> Callable[[int
 def _sb3_policy(path: Path, env: MergeEnv, greedy: bool) -> Callable[[int], ActPolicy]:
     import torch
 
+    from agents.checkpoint import act_agents
+
     try:
         from agents.sb3 import load_actor
     except ImportError as exc:
         raise ConfigError(f"--policy sb3: {exc.name} is missing; pip install -e \".[sb3]\" installs it") from None
     space = env.observation_space(env.possible_agents[0])
-    act = load_actor(path, tuple(space.shape), int(env.action_space(env.possible_agents[0]).n))
+    actor = load_actor(path, tuple(space.shape), int(env.action_space(env.possible_agents[0]).n))
+    actors = dict.fromkeys(env.possible_agents, actor)  # one network for all AVs
 
     def for_episode(seed: int) -> ActPolicy:
         torch.manual_seed(seed)  # sampled actions are reproducible per episode
-
-        def policy(obs: Mapping[str, np.ndarray]) -> dict[str, int]:
-            names = list(obs)
-            return dict(zip(names, act(np.stack([obs[a] for a in names]), greedy).tolist(), strict=True))
-
-        return policy
+        return lambda obs: act_agents(actors, obs, greedy)
 
     return for_episode
 

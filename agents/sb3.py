@@ -6,8 +6,8 @@ process of its own when there are several (libsumo allows one SUMO per process),
 (SuperSuit's `black_death_v3` keeps an AV that has left with zero observations until its episode ends,
 `pettingzoo_env_to_vec_env_v1` makes the AVs sub-envs, so one network serves them all); copy i plays its own
 episode seeds, below the evaluation seeds. `ppo_kwargs(train_config)` sets SB3's PPO as `cosim train` is set, with
-`VelocityMapExtractor` (the paper's Conv3D stack) under its policy; a saved model loads by `load_actor(path)`,
-which acts on a batch of observations.
+`VelocityMapExtractor` (the paper's Conv3D stack) under its policy; a saved model loads by `load_actor(path)`
+as an actor with `ActorCritic.act`'s signature.
 """
 
 from __future__ import annotations
@@ -95,8 +95,21 @@ def make_vec_env(config: Config, envs: int, seed: int) -> VecEnv:
     return VecMonitor(_SummaryRenamed(SB3VecEnvWrapper(MakeCPUAsyncConstructor(envs)(fns, *spaces))))
 
 
-def load_actor(path: Path, obs_shape: tuple[int, ...], n_actions: int) -> Any:
-    """A saved SB3 PPO model as `act(obs (B, F, C, H, W), greedy) -> actions (B,)`."""
+class Sb3Actor:
+    """A saved SB3 model acting like `agents.model.ActorCritic.act`, so that the project's batching
+    (`agents.checkpoint.act_agents`) serves it."""
+
+    def __init__(self, model: PPO) -> None:
+        self.model = model
+
+    def act(self, obs: np.ndarray, greedy: bool = False) -> np.ndarray:
+        """Actions (B,) for observations (B, F, C, H, W): the most likely if greedy, else sampled."""
+        actions, _ = self.model.predict(obs, deterministic=greedy)
+        return np.asarray(actions, dtype=np.int64)
+
+
+def load_actor(path: Path, obs_shape: tuple[int, ...], n_actions: int) -> Sb3Actor:
+    """A saved SB3 PPO model, checked against the scenario's observation shape and actions."""
     try:
         model = PPO.load(path, device="cpu")
     except (OSError, ValueError, KeyError) as exc:
@@ -104,9 +117,4 @@ def load_actor(path: Path, obs_shape: tuple[int, ...], n_actions: int) -> Any:
     if tuple(model.observation_space.shape) != tuple(obs_shape) or model.action_space.n != n_actions:
         raise ConfigError(f"--checkpoint {path}: trained on observations {model.observation_space.shape} with "
                           f"{model.action_space.n} actions; this scenario has {obs_shape} and {n_actions}")
-
-    def act(obs: np.ndarray, greedy: bool) -> np.ndarray:
-        actions, _ = model.predict(obs, deterministic=greedy)
-        return np.asarray(actions, dtype=np.int64)
-
-    return act
+    return Sb3Actor(model)

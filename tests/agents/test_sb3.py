@@ -32,8 +32,8 @@ def test_sb3_trains_on_the_env_and_its_model_evaluates_like_any_policy(tmp_path:
     env = cosim.parallel_env("configs/smoke.yaml")
     shape = env.observation_space(env.possible_agents[0]).shape
     env.close()
-    act = load_actor(model, shape, 5)
-    actions = act(np.zeros((3, *shape), np.uint8), True)
+    actor = load_actor(model, shape, 5)
+    actions = actor.act(np.zeros((3, *shape), np.uint8), greedy=True)
     assert actions.shape == (3,) and set(actions.tolist()) <= set(range(5))
     with pytest.raises(ConfigError, match="trained on observations"):
         load_actor(model, (shape[0] + 1, *shape[1:]), 5)
