@@ -18,7 +18,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from scipy.stats import mannwhitneyu
 
-from agents.sweep import ALTRUISTIC, EGOISTIC, median, pooled, rate, run_name
+from agents.sweep import ALTRUISTIC, EGOISTIC, median, pooled, rate, run_name, values
 from cosim import plots
 from cosim.config import EVAL_SEED_START, load_config
 from cosim.files import atomic_write_text
@@ -90,11 +90,6 @@ def _find(phi_rows: Mapping[float, Any], target: float) -> float | None:
     return next((p for p in phi_rows if math.isclose(p, target, abs_tol=1e-3)), None)
 
 
-def distances(rows: Sequence[Mapping[str, str]]) -> np.ndarray:
-    """The merging vehicle's distances [m] of evaluation rows that have one."""
-    return np.array([float(r["merger_distance"]) for r in rows if r.get("merger_distance") not in (None, "", "nan")])
-
-
 def shift_p_value(egoistic: np.ndarray, altruistic: np.ndarray) -> float:
     """p-value of a one-sided Mann-Whitney U test that altruistic distances lie farther downstream (the paper's
     histogram: egoistic mass at the stuck position, altruistic mass beyond it); 1 without data."""
@@ -153,7 +148,7 @@ def _claims(out: Path, phi_rows: Mapping[float, list], run_rows: Mapping[tuple[f
         beyond = {lbl: float(np.mean([float(r["merger_distance"]) > end for r in phi_rows[p]]))
                   for lbl, p in (("egoistic", ego), ("altruistic", alt))}
         med = {lbl: median(phi_rows[p], "merger_distance") for lbl, p in (("egoistic", ego), ("altruistic", alt))}
-        p_value = shift_p_value(*(distances(phi_rows[p]) for p in (ego, alt)))
+        p_value = shift_p_value(*(values(phi_rows[p], "merger_distance") for p in (ego, alt)))
         claims.append({"claim": "(3) the merging vehicle's distance shifts downstream with altruistic AVs",
                        "holds": p_value < 0.05,
                        "detail": f"median {med['egoistic']:.1f} m egoistic vs {med['altruistic']:.1f} m altruistic; "

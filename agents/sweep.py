@@ -27,7 +27,7 @@ import shlex
 import shutil
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -205,9 +205,14 @@ def rate(rows: Sequence[dict[str, str]], column: str) -> dict[str, float]:
     return {"mean": 100 * ci.mean, "ci_low": 100 * ci.low, "ci_high": 100 * ci.high, "n": ci.n}
 
 
+def values(rows: Sequence[Mapping[str, str]], column: str) -> np.ndarray:
+    """A column's values in the rows that have one."""
+    return np.array([float(r[column]) for r in rows if r.get(column) not in (None, "", "nan")])
+
+
 def median(rows: Sequence[dict[str, str]], column: str) -> float:
-    values = np.array([float(r[column]) for r in rows if r.get(column) not in (None, "", "nan")])
-    return float(np.median(values)) if values.size else math.nan
+    got = values(rows, column)
+    return float(np.median(got)) if got.size else math.nan
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
