@@ -34,13 +34,13 @@ from typing import Any
 import numpy as np
 
 from agents.config import train_config
-from agents.evaluate import PolicySpec, evaluate, read_rows
 from agents.rollout import Backend, add_backend_arguments
 from cosim.cli import add_config_arguments
 from cosim.config import EVAL_SEED_START, Config, load_config
 from cosim.errors import ConfigError, SimulationError
+from cosim.evaluation.runner import PolicySpec, evaluate, read_rows
+from cosim.evaluation.stats import format_table, rate_ci, summarize
 from cosim.files import atomic_write_text
-from cosim.metrics import format_table, rate_ci, summarize
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +80,7 @@ def _sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], 
                  workers=eval_workers, trajectories=0, plots=False)
         _add_wall(walls, f"evaluate {name}", t0)
     atomic_write_text(out / "walls.json", json.dumps(walls, indent=2) + "\n")
-    from agents.report import write_report  # matplotlib only once there is something to plot
+    from cosim.evaluation.report import write_report  # matplotlib only once there is something to plot
 
     result: dict[str, Any] = {}
     args = (cfg, out, budget_min, eval_episodes, eval_workers)

@@ -121,7 +121,7 @@ def _record_changes(out_dir: Path, changes: dict[str, tuple[Any, Any]], update: 
 
 
 def _default_env_factory(cfg: Config) -> EnvFactory:
-    from cosim.merge_env import parallel_env  # the meeting point of agents/ and cosim/, through PettingZoo
+    from cosim.environment.merge_env import parallel_env  # the meeting point of agents/ and cosim/, through PettingZoo
 
     return functools.partial(parallel_env, cfg.to_dict())
 

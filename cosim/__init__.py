@@ -9,7 +9,7 @@ __all__ = ["env", "parallel_env"]
 def __getattr__(name: str) -> Any:
     # Lazy, so `import cosim.config` stays light (no gymnasium / pettingzoo import).
     if name in __all__:
-        import cosim.merge_env
+        import cosim.environment.merge_env
 
-        return getattr(cosim.merge_env, name)
+        return getattr(cosim.environment.merge_env, name)
     raise AttributeError(name)

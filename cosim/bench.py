@@ -20,7 +20,7 @@ import numpy as np
 
 from cosim.cli import add_config_arguments
 from cosim.config import OBSERVATION_PRESETS, load_config
-from cosim.merge_env import MergeEnv
+from cosim.environment.merge_env import MergeEnv
 
 log = logging.getLogger(__name__)
 

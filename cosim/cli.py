@@ -28,8 +28,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("cosim.bench", "measure env speed against a bare libsumo loop"),
     "train": ("agents.train", "train AV policies with multi-agent A2C or PPO"),
     "sweep": ("agents.sweep", "train and evaluate every (SVO angle, seed) within a budget, report against baselines"),
-    "evaluate": ("agents.evaluate", "evaluate trained AVs or a baseline policy"),
-    "compare": ("agents.compare", "compare evaluated runs: tables, plots, Markdown report"),
+    "evaluate": ("cosim.evaluation.runner", "evaluate trained AVs or a baseline policy"),
+    "compare": ("cosim.evaluation.compare", "compare evaluated runs: tables, plots, Markdown report"),
 }
 
 

@@ -19,8 +19,8 @@ from typing import Any
 
 import yaml
 
+from cosim.environment.reward import TERMS
 from cosim.errors import ConfigError
-from cosim.reward import TERMS
 
 # A stacked VelocityMap of the paper's size vs one that trains on a CPU; user keys override a preset.
 OBSERVATION_PRESETS: dict[str, dict[str, Any]] = {
@@ -31,7 +31,7 @@ CHANNELS = ("road", "avs", "hvs", "ego_merger")
 # Episode seeds from here on are evaluation's; training draws its seeds below, so the two never meet.
 EVAL_SEED_START = 10_000_000
 AV_DRIVERS = ("env", "sumo")  # who drives the AVs: the agents through the env, or SUMO's own models
-PLACEMENTS = ("window", "stream")  # keys of cosim.scenario.PLACEMENTS
+PLACEMENTS = ("window", "stream")  # keys of cosim.sumo.scenario.PLACEMENTS
 ON_COLLISION = ("end", "remove")  # a collision with an AV or the merging vehicle ends the episode, or is removed
 
 
@@ -61,7 +61,7 @@ class SimConfig:
     # and go on. Collisions among HVs alone never end an episode.
     on_collision: str = "end"
     # [s] a collision within this time after one of the two vehicles entered its lane is a lane-change
-    # collision, the fault of the vehicle that changed lanes (crash attribution, cosim.collisions).
+    # collision, the fault of the vehicle that changed lanes (crash attribution, cosim.environment.collisions).
     cut_in_window: float = 2.0
     stuck_speed: float = 0.5  # [m/s] a merging vehicle slower than this near its lane end has failed
     stuck_distance: float = 10.0  # [m] ... and this close to the end of the acceleration lane
@@ -79,7 +79,7 @@ class SimConfig:
 
 @dataclass(frozen=True)
 class ScenarioConfig:
-    """Where the vehicles start (cosim.scenario). Ranges [low, high] are drawn uniformly per episode seed.
+    """Where the vehicles start (cosim.sumo.scenario). Ranges [low, high] are drawn uniformly per episode seed.
 
     `placement: stream` (the merge dilemma): a dense stream of HVs and the AVs in the lane the merging vehicle
     must enter, each HV at its IDM equilibrium gap behind its leader at the stream's speed, led by a vehicle
@@ -168,7 +168,7 @@ class ObservationConfig:
 class RewardConfig:
     # SVO angle [rad]: one value for all AVs, or one per AV. 0 egoistic, pi/4 altruistic, pi/2 fully.
     phi: float | tuple[float, ...] = 0.0
-    # Weights of the named utility terms (cosim.reward.TERMS); unlisted terms keep their default.
+    # Weights of the named utility terms (cosim.environment.reward.TERMS); unlisted terms keep their default.
     weights: Mapping[str, float] = field(default_factory=dict)
 
     def weight(self, term: str) -> float:

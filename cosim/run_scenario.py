@@ -10,8 +10,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from cosim.cli import add_config_arguments
-from cosim.merge_env import parallel_env
-from cosim.policies import POLICIES
+from cosim.environment.merge_env import parallel_env
+from cosim.environment.policies import POLICIES
 
 log = logging.getLogger(__name__)
 

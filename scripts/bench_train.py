@@ -25,12 +25,12 @@ from typing import Any
 import torch
 
 from agents.config import use_bf16
-from agents.evaluate import read_rows
 from agents.losses import actor_critic_loss
 from agents.model import ActorCritic
 from agents.rollout import BACKENDS
 from agents.train import train
 from cosim.config import OBSERVATION_PRESETS, load_config
+from cosim.evaluation.runner import read_rows
 
 log = logging.getLogger("bench_train")
 

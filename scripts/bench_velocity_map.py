@@ -20,8 +20,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from cosim.config import ObservationConfig  # noqa: E402
-from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot  # noqa: E402
-from cosim.velocity_map import RoadRaster, VelocityMapper, rasterize_road  # noqa: E402
+from cosim.environment.velocity_map import RoadRaster, VelocityMapper, rasterize_road  # noqa: E402
+from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot  # noqa: E402
 
 N_AGENTS, N_VEHICLES, LANE_W, ROAD_LEN = 5, 25, 3.2, 1200.0
 DT = 0.1  # [s] between two snapshots: one SUMO step

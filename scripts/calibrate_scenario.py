@@ -20,11 +20,11 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from agents.evaluate import PolicySpec, evaluate
 from cosim.config import EVAL_SEED_START, load_config
 from cosim.errors import CosimError
+from cosim.evaluation.runner import PolicySpec, evaluate
+from cosim.evaluation.stats import format_table
 from cosim.files import atomic_write_text
-from cosim.metrics import format_table
 
 log = logging.getLogger("calibrate")
 

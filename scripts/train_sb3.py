@@ -80,7 +80,7 @@ def main() -> int:
         path = train_sb3(config, args.out, args.steps, args.envs, args.seed)
         log.info("trained %d agent-steps in %.0f s into %s", args.steps, time.perf_counter() - t0, path)
         if args.eval_episodes:
-            from agents.evaluate import PolicySpec, evaluate, print_summary
+            from cosim.evaluation.runner import PolicySpec, evaluate, print_summary
 
             summary = evaluate(config, PolicySpec("sb3", str(path.resolve())), args.out / "eval",
                                episodes=args.eval_episodes, workers=args.eval_workers, plots=False)

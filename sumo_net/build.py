@@ -1,7 +1,7 @@
 """Builder of the on-ramp merge network: plain XML sources -> netconvert -> `.net.xml` + description YAML.
 
 Contract: `build_merge_net(out_dir, ...)` writes `NAME.nod.xml`, `NAME.edg.xml`, `NAME.con.xml`,
-`NAME.net.xml` and `NAME.yaml` (the net description read by `cosim.netdesc`) into `out_dir` and returns
+`NAME.net.xml` and `NAME.yaml` (the net description read by `cosim.sumo.netdesc`) into `out_dir` and returns
 the `.net.xml` path.
 Bad parameters and a failing netconvert raise `cosim.errors.NetError` with a message naming the parameter or
 netconvert's stderr. `add_arguments` / `run` are the `cosim build-net` command.

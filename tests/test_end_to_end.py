@@ -11,9 +11,9 @@ from pathlib import Path
 import pytest
 
 from agents.checkpoint import read_checkpoint
-from agents.evaluate import read_rows
 from cosim.cli import main
 from cosim.config import EVAL_SEED_START
+from cosim.evaluation.runner import read_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -204,8 +204,8 @@ def test_ctrl_c_during_a_two_worker_evaluation_exits_130_cleanly(tmp_path: Path)
 
 @pytest.mark.slow
 def test_memory_stays_flat_over_2000_evaluation_episodes(tmp_path: Path) -> None:
-    from agents.evaluate import PolicySpec, evaluate
     from cosim.config import load_config
+    from cosim.evaluation.runner import PolicySpec, evaluate
 
     def rss_mib() -> float:
         return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20

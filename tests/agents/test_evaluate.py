@@ -14,8 +14,12 @@ import pytest
 import torch
 
 from agents.checkpoint import CheckpointError, act_agents, save_checkpoint
-from agents.compare import compare
-from agents.evaluate import (
+from agents.model import ActorCritic
+from cosim.cli import main
+from cosim.config import load_config
+from cosim.errors import ConfigError, CosimError, NetError
+from cosim.evaluation.compare import compare
+from cosim.evaluation.runner import (
     CHECKPOINT,
     Job,
     PolicySpec,
@@ -25,10 +29,6 @@ from agents.evaluate import (
     run_episodes,
     summarize_evaluation,
 )
-from agents.model import ActorCritic
-from cosim.cli import main
-from cosim.config import load_config
-from cosim.errors import ConfigError, CosimError, NetError
 from sumo_net.build import run_netconvert
 
 SHORT = ["sim.horizon=8"]

@@ -12,13 +12,13 @@ import pytest
 import torch
 
 from agents.checkpoint import read_checkpoint
-from agents.evaluate import read_rows
 from agents.fake_env import make_fake_env
 from agents.rollout import Backend
 from agents.sweep import sweep
 from agents.train import train
 from cosim.config import load_config
 from cosim.errors import ConfigError, SimulationError
+from cosim.evaluation.runner import read_rows
 
 ray = pytest.importorskip("ray")
 from agents.ray_pool import RayWorkerPool  # noqa: E402 - only where Ray is installed

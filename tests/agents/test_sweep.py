@@ -47,7 +47,7 @@ def test_tiny_sweep_runs_end_to_end_and_resumes(tmp_path: Path, monkeypatch: pyt
 
 
 def test_claim_3_needs_a_significant_shift_downstream() -> None:
-    from agents.report import shift_p_value
+    from cosim.evaluation.report import shift_p_value
 
     rng = np.random.default_rng(0)
     stuck = 225 + rng.normal(0, 5, 150)  # egoistic: the merging vehicle waits at the lane's end

@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cosim.collisions import LaneChangeClock, attribute
-from cosim.episode import ENDINGS, EndCheck, MergeStatus, MergeZone, episode_end
-from cosim.metrics import Chainage, EpisodeTracker
-from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Collision, Snapshot
+from cosim.environment.collisions import LaneChangeClock, attribute
+from cosim.environment.episode import ENDINGS, EndCheck, MergeStatus, MergeZone, episode_end
+from cosim.environment.tracker import EpisodeTracker
+from cosim.sumo.net import Chainage
+from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Collision, Snapshot
 
 # Edges 0 (upstream, 2 lanes), 1 (merge edge, lane 0 the acceleration lane), 2 (downstream), 3 (ramp).
 _THROUGH = np.zeros((5, 3), dtype=bool)

@@ -8,12 +8,11 @@ import numpy as np
 import pytest
 
 from cosim.config import AVConfig, load_config
-from cosim.control import Action, decide
+from cosim.environment.control import Action, decide
 from cosim.errors import ConfigError
-from cosim.netdesc import load_net_description
-from cosim.roadnet import load_roadnet
-from cosim.scenario import MERGER_ID, idm_gap, plan_episode, write_episode
-from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER
+from cosim.sumo.net import load_net
+from cosim.sumo.scenario import MERGER_ID, idm_gap, plan_episode, write_episode
+from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER
 
 ROOT = Path(__file__).resolve().parents[2]
 AV = AVConfig(speed_step=2.0, max_speed=30.0)
@@ -40,36 +39,36 @@ def test_decide_speed_and_lanes() -> None:
 @pytest.fixture(scope="module")
 def free_flow():
     cfg = load_config(ROOT / "configs" / "free_flow.yaml")
-    road = load_roadnet(cfg.net.file)
-    return cfg, road, load_net_description(road)
+    net = load_net(cfg.net.file)
+    return cfg, net, net.desc
 
 
 @pytest.fixture(scope="module")
 def dilemma():
     cfg = load_config(ROOT / "configs" / "default.yaml")
-    road = load_roadnet(cfg.net.file)
-    return cfg, road, load_net_description(road)
+    net = load_net(cfg.net.file)
+    return cfg, net, net.desc
 
 
-def _chainage(desc, road, sp) -> float:
-    return desc.highway_offsets(road)[desc.highway[int(sp.route[3:])]] + sp.pos
+def _chainage(net, sp) -> float:
+    return net.highway_offsets[net.desc.highway[int(sp.route[3:])]] + sp.pos
 
 
 def test_window_plan_is_seeded_interleaved_and_complete(free_flow) -> None:
-    cfg, road, desc = free_flow
-    a, b, c = (plan_episode(cfg, desc, road, s) for s in (5, 5, 6))
+    cfg, net, desc = free_flow
+    a, b, c = (plan_episode(cfg, net, s) for s in (5, 5, 6))
     assert a == b and a != c
     kinds = [sp.kind for sp in a.vehicles]
     assert kinds.count(KIND_AV) == cfg.scenario.n_avs and kinds.count(KIND_HV) == cfg.scenario.n_hvs
     assert kinds.count(KIND_MERGER) == 1 and any(sp.vid == MERGER_ID and sp.route == "ramp" for sp in a.vehicles)
     assert a.flows == []
     hw = [sp for sp in a.vehicles if sp.kind != KIND_MERGER]
-    s = np.array([_chainage(desc, road, sp) for sp in hw])
+    s = np.array([_chainage(net, sp) for sp in hw])
     assert s.min() >= cfg.scenario.place_from and s.max() <= cfg.scenario.place_to + 1e-6
     lo, hi = cfg.scenario.speed_range
     assert all(lo <= sp.speed <= hi for sp in hw)
     # No HV starts faster than it wants to drive (SUMO would refuse the departure).
-    assert all(sp.speed <= sp.speed_factor * road.lane("hw_in", 0).speed + 1e-9 for sp in hw if sp.kind == KIND_HV)
+    assert all(sp.speed <= sp.speed_factor * net.road.lane("hw_in", 0).speed + 1e-9 for sp in hw if sp.kind == KIND_HV)
     # AVs are not all at the front or all at the back: HVs between them.
     order = [sp.kind for sp in sorted(hw, key=lambda sp: s[hw.index(sp)])]
     first, last = order.index(KIND_AV), len(order) - 1 - order[::-1].index(KIND_AV)
@@ -81,22 +80,22 @@ def test_window_plan_is_seeded_interleaved_and_complete(free_flow) -> None:
 
 
 def test_stream_plan_is_a_dense_stream_with_a_guide_av(dilemma) -> None:
-    cfg, road, desc = dilemma
+    cfg, net, desc = dilemma
     sc, hv = cfg.scenario, cfg.hv
-    rank = desc.target_rank(road)
+    rank = net.target_rank()
     assert rank == 0  # the right lane: beside the acceleration lane
-    merge_start = desc.highway_offsets(road)[desc.merge_edge]
-    ramp_len = sum(road.edge_length(e) for e in desc.ramp)
-    a, b = plan_episode(cfg, desc, road, 3), plan_episode(cfg, desc, road, 3)
-    assert a == b and a != plan_episode(cfg, desc, road, 4)
+    merge_start = net.highway_offsets[desc.merge_edge]
+    ramp_len = sum(net.road.edge_length(e) for e in desc.ramp)
+    a, b = plan_episode(cfg, net, 3), plan_episode(cfg, net, 3)
+    assert a == b and a != plan_episode(cfg, net, 4)
     in_time = 0
     for seed in range(20):
-        plan = plan_episode(cfg, desc, road, seed)
+        plan = plan_episode(cfg, net, seed)
         vehicles = [sp for sp in plan.vehicles if sp.kind != KIND_MERGER]
-        lane_rank = {sp.vid: desc.through_lanes(road, desc.highway[int(sp.route[3:])]).index(sp.lane)
+        lane_rank = {sp.vid: net.through_lanes(desc.highway[int(sp.route[3:])]).index(sp.lane)
                      for sp in vehicles}
         stream = sorted((sp for sp in vehicles if lane_rank[sp.vid] == rank),
-                        key=lambda sp: -_chainage(desc, road, sp))
+                        key=lambda sp: -_chainage(net, sp))
         others = [sp for sp in vehicles if lane_rank[sp.vid] != rank]
         assert sum(sp.kind == KIND_AV for sp in stream) == sc.n_avs and len(others) == sc.n_hvs
         assert all(sp.kind == KIND_HV for sp in others)
@@ -104,23 +103,23 @@ def test_stream_plan_is_a_dense_stream_with_a_guide_av(dilemma) -> None:
         speed = head.speed
         assert head.kind == KIND_HV and head.max_speed == pytest.approx(speed)  # it drives at the stream's speed
         assert sc.stream_speed[0] <= speed <= sc.stream_speed[1]
-        assert merge_start + sc.stream_head[0] <= _chainage(desc, road, head) <= merge_start + sc.stream_head[1]
+        assert merge_start + sc.stream_head[0] <= _chainage(net, head) <= merge_start + sc.stream_head[1]
         # Each HV behind its leader at its IDM equilibrium gap at the stream's speed, times the spacing factor.
         for lead, follower in zip(stream, stream[1:], strict=False):
-            gap = _chainage(desc, road, lead) - hv.length - _chainage(desc, road, follower)
+            gap = _chainage(net, lead) - hv.length - _chainage(net, follower)
             if follower.kind == KIND_HV:
                 assert follower.speed == pytest.approx(speed)
-                eq = idm_gap(speed, min(follower.speed_factor * road.lane(desc.merge_edge, 1).speed, hv.max_speed),
+                eq = idm_gap(speed, min(follower.speed_factor * net.road.lane(desc.merge_edge, 1).speed, hv.max_speed),
                              follower.tau, hv.min_gap)
                 assert sc.stream_spacing[0] * eq - 1e-6 <= gap <= sc.stream_spacing[1] * eq + 1e-6
                 assert hv.tau_range[0] <= follower.tau <= hv.tau_range[1]
             else:
                 assert speed + sc.av_speed_offset[0] - 1e-9 <= follower.speed <= speed + sc.av_speed_offset[1] + 1e-9
-        assert _chainage(desc, road, stream[-1]) - hv.length >= sc.place_from
+        assert _chainage(net, stream[-1]) - hv.length >= sc.place_from
         merger = next(sp for sp in plan.vehicles if sp.kind == KIND_MERGER)
         assert sc.merger_pos[0] <= merger.pos <= sc.merger_pos[1]
         merger_time = (ramp_len - merger.pos) / merger.speed
-        lags = [(merge_start - _chainage(desc, road, sp)) / speed - merger_time for sp in stream if sp.kind == KIND_AV]
+        lags = [(merge_start - _chainage(net, sp)) / speed - merger_time for sp in stream if sp.kind == KIND_AV]
         in_time += any(sc.guide_window[0] <= lag <= sc.guide_window[1] for lag in lags)
         # On this long highway the placed stream outlasts the horizon: no flow needed behind it.
         assert plan.flows == []
@@ -129,23 +128,22 @@ def test_stream_plan_is_a_dense_stream_with_a_guide_av(dilemma) -> None:
 
 def test_stream_on_a_short_highway_moves_down_and_goes_on(two_lane_net: Path) -> None:
     cfg = load_config(ROOT / "configs" / "default.yaml", {"net.file": str(two_lane_net), "scenario.n_hvs": 4})
-    road = load_roadnet(two_lane_net)
-    desc = load_net_description(road)
+    net = load_net(two_lane_net)
     for seed in range(10):
-        plan = plan_episode(cfg, desc, road, seed)
+        plan = plan_episode(cfg, net, seed)
         assert sum(sp.kind == KIND_AV for sp in plan.vehicles) == cfg.scenario.n_avs
         (flow,) = plan.flows  # the stream goes on, entering at the highway's start in the stream's lane
-        assert flow.route == "hw_0" and flow.lane == desc.through_lanes(road, desc.highway[0])[0]
+        assert flow.route == "hw_0" and flow.lane == net.through_lanes(net.desc.highway[0])[0]
         assert flow.period > 0
     with pytest.raises(ConfigError, match="do not fit in the stream"):
-        plan_episode(load_config(cfg, {"scenario.n_avs": 40}), desc, road, 0)
+        plan_episode(load_config(cfg, {"scenario.n_avs": 40}), net, 0)
 
 
 def test_episode_file_holds_vehicles_and_flows(free_flow, tmp_path: Path) -> None:
-    cfg, road, desc = free_flow
+    cfg, net, desc = free_flow
     cfg = load_config(cfg, {"scenario.inflow": 900.0})
     path = tmp_path / "ep.rou.xml"
-    write_episode(plan_episode(cfg, desc, road, 0), cfg, desc, path)
+    write_episode(plan_episode(cfg, net, 0), cfg, net.desc, path)
     text = path.read_text()
     assert text.count("<vehicle ") == cfg.scenario.n_avs + cfg.scenario.n_hvs + 1
     assert 'carFollowModel="IDM"' in text and 'laneChangeModel="LC2013"' in text and 'speedDev="0"' in text
@@ -153,12 +151,12 @@ def test_episode_file_holds_vehicles_and_flows(free_flow, tmp_path: Path) -> Non
 
 
 def test_too_many_vehicles_is_a_clear_error(free_flow) -> None:
-    cfg, road, desc = free_flow
+    cfg, net, desc = free_flow
     with pytest.raises(ConfigError, match="do not fit"):
-        plan_episode(load_config(cfg, {"scenario.n_hvs": 200}), desc, road, 0)
+        plan_episode(load_config(cfg, {"scenario.n_hvs": 200}), net, 0)
 
 
 def test_placement_window_off_the_highway_is_a_clear_error(free_flow) -> None:
-    cfg, road, desc = free_flow
+    cfg, net, desc = free_flow
     with pytest.raises(ConfigError, match="place_from / place_to"):
-        plan_episode(load_config(cfg, {"scenario.place_to": 5000.0}), desc, road, 0)
+        plan_episode(load_config(cfg, {"scenario.place_to": 5000.0}), net, 0)

@@ -9,9 +9,9 @@ import pytest
 from pettingzoo.test import api_test, parallel_api_test
 
 import cosim
-from cosim.merge_env import MergeEnv
-from cosim.outputs import TRIPINFO_FILE, read_tripinfo
-from cosim.policies import POLICIES
+from cosim.environment.merge_env import MergeEnv
+from cosim.environment.policies import POLICIES
+from cosim.sumo.outputs import TRIPINFO_FILE, read_tripinfo
 
 SEEDS = range(10_000_000, 10_000_030)  # evaluation seeds, fixed
 

@@ -11,11 +11,11 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 import cosim
-from cosim.control import Action
+from cosim.environment.control import Action
+from cosim.environment.merge_env import MergeEnv
+from cosim.environment.policies import scripted_policy
+from cosim.environment.tracker import EpisodeTracker
 from cosim.errors import SimulationError
-from cosim.merge_env import MergeEnv
-from cosim.metrics import EpisodeTracker
-from cosim.policies import scripted_policy
 
 # The env's mechanics on the free-flow scene: AVs spread over three lanes. The dilemma has tests of its own.
 FREE = "configs/free_flow.yaml"
@@ -270,7 +270,7 @@ def test_second_generated_net_runs_unchanged(two_lane_net) -> None:
     finally:
         env.close()
     assert len(trace) > 1
-    assert env.desc.accel_lanes == (0,) and env.road.num_lanes("hw_in") == 2
+    assert env.net.desc.accel_lanes == (0,) and env.road.num_lanes("hw_in") == 2
 
 
 def test_second_live_env_in_one_process_is_refused(env: MergeEnv) -> None:
@@ -297,7 +297,7 @@ def test_lane_change_does_not_follow_the_av_onto_the_acceleration_lane() -> None
     env = cosim.parallel_env(FREE, {"scenario.n_avs": 1, "scenario.n_hvs": 0})
     try:
         env.reset(seed=0)
-        hw_in = env.desc.highway[0]
+        hw_in = env.net.desc.highway[0]
         libsumo.vehicle.moveTo("av_0", f"{hw_in}_1", env.road.edge_length(hw_in) - 10.0)
         env.step({"av_0": int(Action.LANE_RIGHT)})
         seen = []
@@ -307,7 +307,7 @@ def test_lane_change_does_not_follow_the_av_onto_the_acceleration_lane() -> None
             seen.append((env.road.edge_ids[env.snapshot.edge[r]], int(env.snapshot.lane[r])))
     finally:
         env.close()
-    assert seen[-1] == (env.desc.merge_edge, 1), seen  # hw_in lane 0 continues as the merge edge's lane 1
+    assert seen[-1] == (env.net.desc.merge_edge, 1), seen  # hw_in lane 0 continues as the merge edge's lane 1
 
 
 

@@ -8,19 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cosim.episode import MergeStatus, MergeZone
-from cosim.metrics import (
-    Chainage,
-    EpisodeTracker,
-    format_table,
-    guide_av,
-    mean_ci,
-    rate_ci,
-    summarize,
-)
-from cosim.netdesc import load_net_description
-from cosim.roadnet import load_roadnet
-from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
+from cosim.environment.episode import MergeStatus, MergeZone
+from cosim.environment.tracker import EpisodeTracker, guide_av
+from cosim.evaluation.stats import format_table, mean_ci, rate_ci, summarize
+from cosim.sumo.net import Chainage, load_net
+from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
 
 
 def test_mean_ci_known_values() -> None:
@@ -167,9 +159,8 @@ def test_tracker_merge_is_the_envs_merge_status() -> None:
 
 
 def test_chainage_of_the_real_net(two_lane_net: Path) -> None:
-    road = load_roadnet(two_lane_net)
-    desc = load_net_description(road)
-    ch = Chainage.from_net(desc, road)
+    net = load_net(two_lane_net)
+    road, desc, ch = net.road, net.desc, net.chainage
     ramp_end = ch.offsets[road.edge_index[desc.ramp[-1]]] + road.edge_length(desc.ramp[-1])
     assert ramp_end + road.junction_length(desc.ramp[-1], desc.merge_edge) == pytest.approx(ch.merge_start)
     # Through a junction the axis goes on where the lane left ends, up to where the next edge starts:
@@ -180,5 +171,5 @@ def test_chainage_of_the_real_net(two_lane_net: Path) -> None:
         assert ch.offsets[k] == pytest.approx(start)
         if lanes[0].from_edge in desc.highway:
             assert ch.offsets[k] + lanes[0].length == pytest.approx(ch.offsets[road.index_of[lanes[0].to_edge]])
-    assert ch.highway_end == pytest.approx(desc.highway_length(road))
+    assert ch.highway_end == pytest.approx(net.highway_length)
     assert ch.merge_end - ch.merge_start == pytest.approx(road.edge_length(desc.merge_edge))

@@ -9,8 +9,8 @@ import pytest
 
 from cosim.cli import main
 from cosim.errors import NetError
-from cosim.netdesc import load_net_description
-from cosim.roadnet import load_roadnet
+from cosim.sumo.netdesc import load_net_description
+from cosim.sumo.roadnet import load_roadnet
 from sumo_net.build import build_merge_net, run_netconvert
 
 DEFAULT_NET = Path(__file__).resolve().parents[2] / "sumo_net" / "merge" / "merge.net.xml"

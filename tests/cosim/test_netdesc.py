@@ -9,8 +9,9 @@ from pathlib import Path
 import pytest
 
 from cosim.errors import NetError
-from cosim.netdesc import NetDescription, infer_net_description, load_net_description
-from cosim.roadnet import RoadNet, load_roadnet
+from cosim.sumo.net import Net
+from cosim.sumo.netdesc import NetDescription, infer_net_description, load_net_description
+from cosim.sumo.roadnet import RoadNet, load_roadnet
 from sumo_net.build import build_merge_net, run_netconvert
 
 GOOD = "highway: [hw_in, hw_merge, hw_out]\nramp: [ramp]\nmerge_edge: hw_merge\naccel_lanes: [0]\n"
@@ -45,8 +46,8 @@ def test_inference_matches_the_builders_yaml(tmp_path: Path, lanes: int) -> None
 
 
 def test_chainage_helpers(net: RoadNet) -> None:
-    desc = load_net_description(net, None)
-    offsets = desc.highway_offsets(net)
+    geo = Net(net, load_net_description(net, None))
+    offsets = geo.highway_offsets
     assert offsets["hw_in"] == 0.0
     # The ways through the junctions count, as in SUMO's odometer.
     junction = net.junction_length("hw_in", "hw_merge")
@@ -54,17 +55,17 @@ def test_chainage_helpers(net: RoadNet) -> None:
     assert offsets["hw_merge"] == pytest.approx(net.edge_length("hw_in") + junction)
     assert offsets["hw_out"] == pytest.approx(offsets["hw_merge"] + net.edge_length("hw_merge")
                                               + net.junction_length("hw_merge", "hw_out"))
-    assert desc.highway_position(net, 0.0) == ("hw_in", 0.0)
-    edge, pos = desc.highway_position(net, offsets["hw_merge"] + 10.0)
+    assert geo.highway_position(0.0) == ("hw_in", 0.0)
+    edge, pos = geo.highway_position(offsets["hw_merge"] + 10.0)
     assert edge == "hw_merge" and pos == pytest.approx(10.0)
-    total = desc.highway_length(net)
-    assert desc.highway_position(net, total) == ("hw_out", pytest.approx(net.edge_length("hw_out")))
+    total = geo.highway_length
+    assert geo.highway_position(total) == ("hw_out", pytest.approx(net.edge_length("hw_out")))
     with pytest.raises(ValueError, match="outside the highway"):
-        desc.highway_position(net, total + 1.0)
+        geo.highway_position(total + 1.0)
     with pytest.raises(ValueError, match="outside the highway"):
-        desc.highway_position(net, -1.0)
-    assert desc.through_lanes(net, "hw_merge") == (1, 2)
-    assert desc.through_lanes(net, "hw_in") == (0, 1)
+        geo.highway_position(-1.0)
+    assert geo.through_lanes("hw_merge") == (1, 2)
+    assert geo.through_lanes("hw_in") == (0, 1)
 
 
 def test_explicit_file_overrides_the_one_beside_the_net(net: RoadNet, tmp_path: Path) -> None:

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 
 import cosim
+from cosim.environment.policies import POLICIES
+from cosim.environment.tracker import EpisodeTracker
 from cosim.errors import SimulationError
-from cosim.metrics import Chainage, EpisodeTracker
-from cosim.netdesc import load_net_description
-from cosim.outputs import (
+from cosim.sumo.net import load_net
+from cosim.sumo.outputs import (
     DETECTOR_FILE,
     TRIPINFO_FILE,
     detector_site,
@@ -21,8 +22,6 @@ from cosim.outputs import (
     read_episode_outputs,
     read_tripinfo,
 )
-from cosim.policies import POLICIES
-from cosim.roadnet import load_roadnet
 
 TRIPS = """<tripinfos>
     <tripinfo id="a" duration="20.00" routeLength="500.00" timeLoss="2.00" vaporized=""/>
@@ -105,9 +104,9 @@ def test_resets_with_the_same_seed_keep_both_episodes_outputs(tmp_path: Path) ->
 
 
 def test_detectors_cover_every_lane_of_the_last_highway_edge(two_lane_net: Path, tmp_path: Path) -> None:
-    road = load_roadnet(two_lane_net)
-    desc = load_net_description(road)
-    site = detector_site(desc, road, offset=1e6)  # clipped into the edge
+    net = load_net(two_lane_net)
+    road, desc = net.road, net.desc
+    site = detector_site(net, offset=1e6)  # clipped into the edge
     last = desc.highway[-1]
     assert site.edge == last and len(site.lanes) == road.num_lanes(last)
     assert site.pos < road.edge_length(last)
@@ -123,7 +122,7 @@ def test_sumo_throughput_agrees_with_our_snapshots(net: str, two_lane_net: Path,
         overrides.update({"net.file": str(two_lane_net), "scenario.n_hvs": 6, "sim.detector_offset": 40.0})
     env = cosim.parallel_env("configs/default.yaml", overrides)
     try:
-        chain = Chainage.from_net(env.desc, env.road)
+        chain = env.net.chainage
         policy = POLICIES["scripted"](0)
         tracks = {}
         for seed in (3, 4, 5):
@@ -143,7 +142,7 @@ def test_sumo_throughput_agrees_with_our_snapshots(net: str, two_lane_net: Path,
     for seed, tr in tracks.items():
         out = env.sumo_outputs[seed]
         assert (tmp_path / f"episode_{seed}" / TRIPINFO_FILE).is_file()
-        loops = env.desc.highway_offsets(env.road)[env.detectors.edge] + env.detectors.pos  # on the highway axis
+        loops = env.net.highway_offsets[env.detectors.edge] + env.detectors.pos  # on the highway axis
         assert out.detector_count == crossings(tr.trajectory(), loops) > 0
         assert out.throughput_vph == pytest.approx(out.detector_count * 3600 / tr.time)
         assert out.n_trips == len(tr.distance)

@@ -9,10 +9,10 @@ import pytest
 from matplotlib.figure import Figure
 
 import cosim
-from cosim import plots
-from cosim.policies import POLICIES
-from cosim.roadnet import load_roadnet
-from cosim.snapshot import KIND_MERGER
+from cosim.environment.policies import POLICIES
+from cosim.evaluation import plots
+from cosim.sumo.roadnet import load_roadnet
+from cosim.sumo.snapshot import KIND_MERGER
 
 
 @pytest.fixture(scope="module")

@@ -9,10 +9,10 @@ import pytest
 
 import cosim
 from cosim.config import ObservationConfig, RewardConfig, load_config
+from cosim.environment.reward import TERMS, StepChange, svo_rewards, term, utility_terms, weighted_utility
+from cosim.environment.velocity_map import RoadRaster, VelocityMapper
 from cosim.errors import ConfigError
-from cosim.reward import TERMS, StepChange, svo_rewards, term, utility_terms, weighted_utility
-from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
-from cosim.velocity_map import RoadRaster, VelocityMapper
+from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
 
 # Two AVs, two HVs, the merging vehicle. av_0 sees av_1 and hv_0; hv_1 is 300 m away; the merger is
 # out of av_0's window too, but counts anyway (the paper's k in V~ ∪ {M}).

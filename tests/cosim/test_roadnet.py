@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cosim.errors import NetError
-from cosim.roadnet import load_roadnet
+from cosim.sumo.roadnet import load_roadnet
 
 
 def test_reads_edges_lanes_and_shapes(two_lane_net: Path) -> None:

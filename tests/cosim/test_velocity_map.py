@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from cosim.config import ObservationConfig
-from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
-from cosim.velocity_map import RoadRaster, VelocityMapper, rasterize_road
+from cosim.environment.velocity_map import RoadRaster, VelocityMapper, rasterize_road
+from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
 
 CH = {name: i for i, name in enumerate(("road", "avs", "hvs", "ego_merger"))}  # default channel order
 

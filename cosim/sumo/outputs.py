@@ -1,7 +1,7 @@
 """SUMO's own outputs for traffic-engineering figures: induction loops and tripinfo, written and parsed.
 
 Contract:
-- `detector_site(desc, road, offset)`: induction loops on every lane of the last highway edge, `offset` [m]
+- `detector_site(net, offset)`: induction loops on every lane of the last highway edge, `offset` [m]
   past its start (clipped into the edge), placed from the net description, never from edge ids in code.
 - `episode_folder(root, seed, busy)` names an episode's folder: `root/episode_{seed}`, or
   `root/episode_{seed}_1` when that is `busy`, the previous episode's folder (a reset with the same seed
@@ -29,8 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from cosim.errors import SimulationError
-from cosim.netdesc import NetDescription
-from cosim.roadnet import RoadNet
+from cosim.sumo.net import Net
 
 TRIPINFO_FILE = "tripinfo.xml"
 DETECTOR_FILE = "detectors.xml"
@@ -44,8 +43,9 @@ class DetectorSite:
     pos: float  # [m] from the edge's start
 
 
-def detector_site(desc: NetDescription, road: RoadNet, offset: float) -> DetectorSite:
-    edge = desc.highway[-1]
+def detector_site(net: Net, offset: float) -> DetectorSite:
+    road = net.road
+    edge = net.desc.highway[-1]
     length = road.edge_length(edge)
     pos = min(max(offset, 0.0), max(length - 0.5, 0.0))
     lanes = tuple(lane.id for lane in road.edge(edge).lanes)

@@ -1,6 +1,6 @@
 """The vehicles of one episode: a seeded plan, and the SUMO route file that realises it.
 
-Contract: `plan_episode(cfg, desc, road, seed)` is a pure function of its inputs (same seed, same plan); the
+Contract: `plan_episode(cfg, net, seed)` is a pure function of its inputs (same seed, same plan); the
 config's `scenario.placement` picks the rule from `PLACEMENTS`:
 - `window` (free flow): N AVs and M HVs interleaved on the highway's through lanes upstream of the merge,
   with randomised gaps and speeds.
@@ -31,9 +31,9 @@ import numpy as np
 
 from cosim.config import Config, DriverConfig
 from cosim.errors import ConfigError
-from cosim.netdesc import NetDescription
-from cosim.roadnet import RoadNet
-from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER
+from cosim.sumo.net import Net
+from cosim.sumo.netdesc import NetDescription
+from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER
 
 MERGER_ID = "merger"
 
@@ -101,28 +101,28 @@ def idm_gap(speed: float, desired: float, tau: float, min_gap: float) -> float:
 class _Planner:
     """Shared state of one plan: the seeded RNG, the net's highway axis and the spawns made so far."""
 
-    def __init__(self, cfg: Config, desc: NetDescription, road: RoadNet, seed: int) -> None:
-        self.cfg, self.desc, self.road = cfg, desc, road
+    def __init__(self, cfg: Config, net: Net, seed: int) -> None:
+        self.cfg, self.net, self.desc, self.road = cfg, net, net.desc, net.road
         self.rng = np.random.default_rng(seed)
-        self.length = desc.highway_length(road)
-        self.hw_index = {edge: i for i, edge in enumerate(desc.highway)}
-        self.n_lanes = min(len(desc.through_lanes(road, e)) for e in desc.highway)
-        self.merge_start = desc.highway_offsets(road)[desc.merge_edge]
+        self.length = net.highway_length
+        self.hw_index = {edge: i for i, edge in enumerate(net.desc.highway)}
+        self.n_lanes = min(len(net.through_lanes(e)) for e in net.desc.highway)
+        self.merge_start = net.highway_offsets[net.desc.merge_edge]
         self.plan: list[Spawn] = []
         self.flows: list[Flow] = []
         self.n_av = self.n_hv = 0
         sc = cfg.scenario
         if sc.place_from < 0 or sc.place_to > self.length:
             raise ConfigError(f"scenario.place_from / place_to: [{sc.place_from}, {sc.place_to}] m must lie on "
-                              f"the highway, [0, {self.length:.1f}] m long in {road.net_file}")
+                              f"the highway, [0, {self.length:.1f}] m long in {net.road.net_file}")
 
     def uniform(self, bounds: tuple[float, float]) -> float:
         return float(self.rng.uniform(*bounds))
 
     def add(self, kind: int, s: float, rank: int, speed: float, **driver: float) -> None:
         """A vehicle whose front bumper is at chainage `s` [m] in the `rank`-th through lane."""
-        edge, pos = self.desc.highway_position(self.road, s)
-        lane = self.desc.through_lanes(self.road, edge)[rank]
+        edge, pos = self.net.highway_position(s)
+        lane = self.net.through_lanes(edge)[rank]
         route = f"hw_{self.hw_index[edge]}"
         if kind == KIND_AV:
             vid, self.n_av = av_id(self.n_av), self.n_av + 1
@@ -188,13 +188,13 @@ def _place_window(p: _Planner) -> None:
 
 def _place_stream(p: _Planner) -> None:
     sc, hv, desc, road = p.cfg.scenario, p.cfg.hv, p.desc, p.road
-    rank = desc.target_rank(road)
+    rank = p.net.target_rank()
     if rank >= p.n_lanes:
         raise ConfigError(f"scenario.placement stream: the lane beside the acceleration lane is not a through lane "
                           f"of every highway edge in {road.net_file}")
     merger_time = p.merger()
     speed = p.uniform(sc.stream_speed)
-    limit = road.lane(desc.merge_edge, desc.through_lanes(road, desc.merge_edge)[rank]).speed
+    limit = road.lane(desc.merge_edge, p.net.through_lanes(desc.merge_edge)[rank]).speed
     # Followers of the stream's first vehicle, front to back: (tau, speed factor, front-to-front spacing [m]).
     drivers, reach = [], 0.0
     while reach < p.length - sc.place_from:
@@ -231,7 +231,7 @@ def _place_stream(p: _Planner) -> None:
     accel_end = p.merge_start + road.edge_length(desc.merge_edge)
     first = desc.highway[0]
     if (accel_end - tail) / max(speed, 0.1) < p.cfg.sim.horizon:
-        p.flows.append(Flow("stream", "hw_0", desc.through_lanes(road, first)[rank], speed,
+        p.flows.append(Flow("stream", "hw_0", p.net.through_lanes(first)[rank], speed,
                             period=float(np.mean([d[2] for d in drivers])) / max(speed, 0.1),
                             tau=float(np.mean(hv.tau_range)), speed_factor=float(np.mean(hv.speed_factor))))
     p.window([r for r in range(p.n_lanes) if r != rank], 0, sc.n_hvs)
@@ -240,8 +240,8 @@ def _place_stream(p: _Planner) -> None:
 PLACEMENTS: dict[str, Callable[[_Planner], None]] = {"window": _place_window, "stream": _place_stream}
 
 
-def plan_episode(cfg: Config, desc: NetDescription, road: RoadNet, seed: int) -> Plan:
-    planner = _Planner(cfg, desc, road, seed)
+def plan_episode(cfg: Config, net: Net, seed: int) -> Plan:
+    planner = _Planner(cfg, net, seed)
     PLACEMENTS[cfg.scenario.placement](planner)
     sc, hv = cfg.scenario, cfg.hv
     if sc.inflow > 0:

@@ -1,7 +1,7 @@
 """Figures of evaluations and training runs, as PNG files (matplotlib's Agg canvas, no pyplot state).
 
 Contract: every function takes plain data (summaries, per-episode columns, a trajectory dict as written by
-`cosim.metrics.EpisodeTracker.trajectory`, a training log CSV) and a path, writes one PNG there and
+`cosim.evaluation.stats.EpisodeTracker.trajectory`, a training log CSV) and a path, writes one PNG there and
 returns the path (or None when there is nothing to draw, e.g. a training log without known columns).
 - `bars`: crash %, merge %, mean distance with 95% intervals, runs side by side (the paper's bar plot).
 - `distance_histogram`: the merging vehicle's distance travelled, overlaid per run.
@@ -24,8 +24,8 @@ from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
-from cosim.control import Action
-from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER
+from cosim.environment.control import Action
+from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER
 
 COLORS = {KIND_AV: "tab:green", KIND_HV: "tab:blue", KIND_MERGER: "tab:purple"}
 GUIDE_COLOR = "tab:orange"

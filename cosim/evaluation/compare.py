@@ -6,7 +6,7 @@ Contract: `compare(dirs, out_dir, labels)` takes evaluation folders (written by 
 merging vehicle's distance, overlaid), `training_curves.png` (when a run folder has the trainer's
 `episodes.csv`), per run `LABEL/` with the time-space diagrams, guide-AV speed profiles and top views of
 its recorded episodes, `summary.json` / `summary.csv` (all runs' metrics) and `report.md` (the table and
-the figures). Each run is summarised from its `episodes.csv` by `agents.evaluate.summarize_evaluation`
+the figures). Each run is summarised from its `episodes.csv` by `cosim.evaluation.runner.summarize_evaluation`
 over the seeds its `summary.json` names, as `cosim evaluate` did: rows of other seeds in the file are
 left out. `plot_run(eval_dir, plots_dir, label, rows)` draws one evaluation's own figures (used by
 `cosim evaluate` too). A folder without an evaluation raises `CosimError`.
@@ -26,13 +26,13 @@ from typing import Any
 
 from tqdm import tqdm
 
-from agents.evaluate import load_trajectory, summarize_evaluation, trajectory_files
-from cosim import plots
 from cosim.config import load_config
 from cosim.errors import CosimError
+from cosim.evaluation import plots
+from cosim.evaluation.runner import load_trajectory, summarize_evaluation, trajectory_files
+from cosim.evaluation.stats import SUMMARY_METRICS, format_table
 from cosim.files import atomic_write_text
-from cosim.metrics import SUMMARY_METRICS, format_table
-from cosim.roadnet import load_roadnet
+from cosim.sumo.roadnet import load_roadnet
 
 log = logging.getLogger(__name__)
 

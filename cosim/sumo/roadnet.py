@@ -7,7 +7,7 @@ connections to the next normal edge. Junction-internal lanes (ids starting with 
 through a junction that SUMO's vehicles drive on between two edges) are kept apart in `internal`: each
 with the normal lane it leaves and its length, so that positions stay continuous through junctions; they
 are indexed after the normal edges (`index_of`). A missing, malformed or non-SUMO file raises `NetError`
-naming the file. What the edges *mean* (highway, ramp, merge) is not here: see `cosim.netdesc`.
+naming the file. What the edges *mean* (highway, ramp, merge) is not here: see `cosim.sumo.netdesc`.
 """
 
 from __future__ import annotations

@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from cosim.config import ObservationConfig
-from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
-from cosim.velocity_map import RoadRaster, VelocityMapper
+from cosim.environment.velocity_map import RoadRaster, VelocityMapper
+from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
 
 BACKGROUND = (30, 30, 30)
 ROAD = (110, 110, 110)

@@ -1,8 +1,8 @@
 """The on-ramp merge as a PettingZoo ParallelEnv over a real SUMO (libsumo).
 
-Contract: agents `av_0 .. av_{N-1}` drive with the paper's 5 meta-actions (`cosim.control.Action`) and
+Contract: agents `av_0 .. av_{N-1}` drive with the paper's 5 meta-actions (`cosim.environment.control.Action`) and
 observe a stacked VelocityMap (frames, channels, height, width); rewards are the SVO rewards of
-`cosim.reward`, with every weighted term in `infos[agent]["reward_terms"]`. An agent terminates when its
+`cosim.environment.reward`, with every weighted term in `infos[agent]["reward_terms"]`. An agent terminates when its
 AV crashes or leaves the net. The episode is cut (every other live agent truncated) at the horizon, when
 the merging vehicle crashes (or, with `sim.end_on_stuck`, gets stuck at the end of the acceleration lane:
 by default it waits there to the horizon), and, with
@@ -10,17 +10,17 @@ by default it waits there to the horizon), and, with
 the merging vehicle: the other AVs' own driving did not end there, so a learner bootstraps, and an
 egoistic AV gains nothing from keeping the episode alive. With `on_collision: remove` the colliders are
 taken off the road after the decision step and the episode goes on. Every collision is attributed (kind,
-fault, cause: `cosim.collisions`) in the episode summary.
+fault, cause: `cosim.environment.collisions`) in the episode summary.
 On the last step every agent's info carries `"episode"`, the episode's summary: the row of the
-`cosim.metrics.EpisodeTracker` the env feeds every snapshot (`env.tracker`), with the seed and whether the
+`cosim.evaluation.stats.EpisodeTracker` the env feeds every snapshot (`env.tracker`), with the seed and whether the
 merge failed. Observations are read-only views valid until the next step.
 
 `step` is a template of small hooks: act -> simulate -> snapshot -> observe -> reward -> end.
 
 With `sim.outputs` each episode writes SUMO's tripinfo and induction-loop files into its own folder
-(`cosim.outputs.episode_folder`), over a window that is the same for every episode: `flush_outputs()` runs
+(`cosim.sumo.outputs.episode_folder`), over a window that is the same for every episode: `flush_outputs()` runs
 an episode that ended early on to the horizon (wrecks stay where they crashed, the AVs drive as SUMO's
-humans), completes the files and parses them into `env.sumo_outputs[seed]` (`cosim.outputs.SumoOutputs`);
+humans), completes the files and parses them into `env.sumo_outputs[seed]` (`cosim.sumo.outputs.SumoOutputs`);
 a reset or close without it completes them at the time the episode ended. With `sim.av_driver: sumo` the
 agents' actions are ignored and SUMO's own models drive the AVs (the all-human baseline).
 """
@@ -41,18 +41,17 @@ from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from cosim.config import Config, load_config
-from cosim.control import N_ACTIONS, decide
-from cosim.episode import EndCheck, MergeZone, episode_end, merge_status
+from cosim.environment.control import N_ACTIONS, decide
+from cosim.environment.episode import EndCheck, MergeZone, episode_end, merge_status
+from cosim.environment.reward import StepChange, svo_rewards, utility_terms, weighted_utility
+from cosim.environment.tracker import EpisodeTracker
+from cosim.environment.velocity_map import VelocityMapper, rasterize_road
 from cosim.errors import SimulationError
-from cosim.metrics import Chainage, EpisodeTracker
-from cosim.netdesc import load_net_description
-from cosim.outputs import SumoOutputs, detector_site, episode_folder, episode_output_args, read_episode_outputs
-from cosim.reward import StepChange, svo_rewards, utility_terms, weighted_utility
-from cosim.roadnet import load_roadnet
-from cosim.scenario import av_id, kind_of, plan_episode, write_episode
-from cosim.session import SumoSession
-from cosim.snapshot import KIND_AV, KIND_MERGER, Snapshot
-from cosim.velocity_map import VelocityMapper, rasterize_road
+from cosim.sumo.net import load_net
+from cosim.sumo.outputs import SumoOutputs, detector_site, episode_folder, episode_output_args, read_episode_outputs
+from cosim.sumo.scenario import av_id, kind_of, plan_episode, write_episode
+from cosim.sumo.session import SumoSession
+from cosim.sumo.snapshot import KIND_AV, KIND_MERGER, Snapshot
 
 log = logging.getLogger(__name__)
 
@@ -66,11 +65,9 @@ class MergeEnv(ParallelEnv):
             raise ValueError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
         self.cfg = config
         self.render_mode = render_mode
-        self.road = load_roadnet(Path(config.net.file))
-        self.desc = load_net_description(
-            self.road, None if config.net.description is None else Path(config.net.description))
-        self.zone = MergeZone.from_net(self.desc, self.road)
-        self.chainage = Chainage.from_net(self.desc, self.road)
+        self.net = load_net(config.net.file, config.net.description)
+        self.road, self.chainage = self.net.road, self.net.chainage
+        self.zone = MergeZone.from_net(self.net)
         self.tracker = self.new_tracker()  # this episode's metrics, renewed at reset
         self.possible_agents = [av_id(i) for i in range(config.scenario.n_avs)]
         self.agents: list[str] = []
@@ -86,7 +83,7 @@ class MergeEnv(ParallelEnv):
         self.session = SumoSession(Path(config.net.file), config.sim.step_length, self.road.index_of, kind_of,
                                    config.sim.sumo_args, config.sim.collision_mingap_factor,
                                    drive_avs=config.sim.av_driver == "env")
-        self.detectors = detector_site(self.desc, self.road, config.sim.detector_offset)
+        self.detectors = detector_site(self.net, config.sim.detector_offset)
         self.sumo_outputs: dict[int, SumoOutputs] = {}  # episode seed -> its parsed SUMO outputs
         # [m] odometer of every vehicle at the end of the flow window (flush_outputs), to check SUMO's against
         self.window_distance: dict[str, float] = {}
@@ -114,7 +111,7 @@ class MergeEnv(ParallelEnv):
         self.episode_seed = seed
         if self._tmp is None:
             self._tmp = Path(tempfile.mkdtemp(prefix="cosim_"))
-        write_episode(plan_episode(self.cfg, self.desc, self.road, seed), self.cfg, self.desc, self.route_file)
+        write_episode(plan_episode(self.cfg, self.net, seed), self.cfg, self.net.desc, self.route_file)
         end_time = None if self._snap is None else self._snap.time
         extra: list[str] = []
         if self.cfg.sim.outputs:
@@ -258,14 +255,14 @@ class MergeEnv(ParallelEnv):
     def episode_summary(self, snap: Snapshot, stuck: bool, ended_by: str) -> dict[str, Any]:
         """Outcome of the episode for metrics: the tracker's row (length, time, crash, merge and time to merge,
         distances [m] and speeds [m/s] by class over every vehicle seen, ...), the seed, `merge_failed` (the
-        merging vehicle got `stuck`) and `ended_by` (the `cosim.episode.ENDINGS` name that ended it, or
+        merging vehicle got `stuck`) and `ended_by` (the `cosim.environment.episode.ENDINGS` name that ended it, or
         agents_done). `snap` is the last snapshot, which the tracker has seen."""
         return {"seed": self.episode_seed, **self.tracker.row(), "merge_failed": stuck, "ended_by": ended_by}
 
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array" or self._snap is None:
             return None
-        from cosim.render import render_scene
+        from cosim.environment.render import render_scene
 
         live = [self.possible_agents.index(a) for a in self.agents]
         return render_scene(self.road_raster, self._snap, self.mapper, self.cfg.observation, live[0] if live else 0)

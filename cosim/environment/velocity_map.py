@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cosim.config import ObservationConfig
-from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
+from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
 
 # Long segments are cut into pieces so each piece's bounding box (the cells it tests) stays small,
 # even for a diagonal kilometre of road.

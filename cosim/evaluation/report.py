@@ -19,12 +19,11 @@ from matplotlib.figure import Figure
 from scipy.stats import mannwhitneyu
 
 from agents.sweep import ALTRUISTIC, EGOISTIC, median, pooled, rate, run_name, values
-from cosim import plots
 from cosim.config import EVAL_SEED_START, load_config
+from cosim.evaluation import plots
+from cosim.evaluation.stats import format_table, summarize
 from cosim.files import atomic_write_text
-from cosim.metrics import format_table, summarize
-from cosim.netdesc import load_net_description
-from cosim.roadnet import load_roadnet
+from cosim.sumo.net import load_net
 
 RATES = {"crash [%]": "crashed", "crash, AV at fault [%]": "cause_av", "crash, HV into AV [%]": "cause_hv_into_av",
          "crash, merging vehicle [%]": "cause_merger", "merge success [%]": "merged"}
@@ -103,10 +102,7 @@ def _accel_end_distance(out: Path) -> float:
     so one that drove farther than this certainly passed the lane's end (one that started up the ramp may have
     passed it driving less: the fraction beyond is a lower bound)."""
     cfg = load_config(next(out.glob("runs/*/eval/config.yaml")))
-    road = load_roadnet(cfg.net.file)
-    desc = load_net_description(road, None if cfg.net.description is None else Path(cfg.net.description))
-    ramp = sum(road.edge_length(e) for e in desc.ramp) + road.junction_length(desc.ramp[-1], desc.merge_edge)
-    return ramp + road.edge_length(desc.merge_edge)
+    return load_net(cfg.net.file, cfg.net.description).ramp_to_accel_end
 
 
 def _claims(out: Path, phi_rows: Mapping[float, list], run_rows: Mapping[tuple[float, int], list],

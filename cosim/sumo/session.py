@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from cosim.errors import SimulationError
-from cosim.snapshot import KIND_AV, Collision, Snapshot
+from cosim.sumo.snapshot import KIND_AV, Collision, Snapshot
 
 log = logging.getLogger(__name__)
 

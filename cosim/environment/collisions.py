@@ -19,7 +19,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from cosim.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Collision, Snapshot
+from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Collision, Snapshot
 
 KINDS = ("rear_end", "lane_change", "junction")
 CAUSES = ("av", "hv_into_av", "merger", "hv")

@@ -5,7 +5,7 @@ Contract:
   default first seed, `cosim.config.EVAL_SEED_START` = 10,000,000, keeps evaluation disjoint from training,
   whose episode seeds are drawn below it (`agents.train.episode_seed`). Policies: `checkpoint` (a trained
   run; greedy argmax actions, or sampled), `sumo` (SUMO's own models drive the AVs: an all-human road),
-  `idle`, `random`, `scripted` (`cosim.policies`).
+  `idle`, `random`, `scripted` (`cosim.environment.policies`).
 - Into `out_dir` go: `evaluation.json` (what was evaluated, with `config_sha256`, the hash of the resolved
   config), `config.yaml` (the resolved config), `episodes.csv` (one row per episode, appended and flushed
   as each finishes: the env's episode summary (`MergeEnv.episode_summary`: crash and crash by class, merge
@@ -13,7 +13,7 @@ Contract:
   actions), SUMO's throughput [veh/h], time loss [s] and mean speed [m/s] over the flow window, and
   `distance_check`, the largest |our odometer - SUMO's tripinfo routeLength| [m] over the episode's
   vehicles), `summary.json` (each
-  metric's mean and interval, `cosim.metrics.summarize`, written atomically), `trajectories/seed_S.npz` for
+  metric's mean and interval, `cosim.evaluation.stats.summarize`, written atomically), `trajectories/seed_S.npz` for
   the first `trajectories` episodes, `sumo/episode_S/` (SUMO's tripinfo and induction-loop files) and
   `plots/`.
 - `summarize_evaluation(eval_dir, first_seed, episodes, confidence)` picks the rows of the requested seeds
@@ -52,12 +52,12 @@ from tqdm import tqdm
 
 from cosim.cli import Heartbeat, add_config_arguments
 from cosim.config import EVAL_SEED_START, Config, load_config, parse_section
-from cosim.control import Action
+from cosim.environment.control import Action
+from cosim.environment.merge_env import MergeEnv
+from cosim.environment.policies import POLICIES
 from cosim.errors import ConfigError, CosimError
+from cosim.evaluation.stats import format_table, summarize
 from cosim.files import AppendCsv, atomic_path, atomic_write_text
-from cosim.merge_env import MergeEnv
-from cosim.metrics import format_table, summarize
-from cosim.policies import POLICIES
 
 log = logging.getLogger(__name__)
 
@@ -369,7 +369,7 @@ def evaluate(cfg: Config, policy: PolicySpec, out_dir: Path, episodes: int, seed
     if checks and max(checks) > 0.5:
         log.warning("our distances and SUMO's tripinfo differ by up to %.2f m", max(checks))
     if plots:
-        from agents.compare import plot_run  # matplotlib only when plotting
+        from cosim.evaluation.compare import plot_run  # matplotlib only when plotting
 
         plot_run(out_dir, out_dir / "plots", label=policy.name, rows=rows)
     return summary

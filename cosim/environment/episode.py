@@ -1,6 +1,6 @@
 """When the merge succeeded or failed, and which agents are done (pure functions of a snapshot).
 
-Contract: `MergeZone.from_net(desc, road)` turns the net description into edge indices once;
+Contract: `MergeZone.from_net(net)` turns the net description into edge indices once;
 `merge_status(snap, zone, stuck_speed, stuck_distance)` says whether the merging vehicle is on a through
 lane of the highway (merged), stuck at the end of the acceleration lane (SUMO would hold it there forever:
 a failed merge), crashed, or gone. `ENDINGS` is the registry of the conditions that end an episode for every
@@ -16,9 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cosim.netdesc import NetDescription
-from cosim.roadnet import RoadNet
-from cosim.snapshot import KIND_MERGER, Snapshot
+from cosim.sumo.net import Net
+from cosim.sumo.snapshot import KIND_MERGER, Snapshot
 
 
 @dataclass(frozen=True, eq=False)
@@ -38,12 +37,13 @@ class MergeZone:
     target_rank: int  # the rank the merging vehicle must enter (beside the acceleration lane)
 
     @classmethod
-    def from_net(cls, desc: NetDescription, road: RoadNet) -> MergeZone:
+    def from_net(cls, net: Net) -> MergeZone:
+        desc, road = net.desc, net.road
         index = road.index_of
         shape = (len(index) + 1, road.max_lanes)
         through, rank = np.zeros(shape, dtype=bool), np.full(shape, -1, dtype=np.int64)
         for e in desc.highway:
-            lanes = list(desc.through_lanes(road, e))
+            lanes = list(net.through_lanes(e))
             through[index[e], lanes] = True
             rank[index[e], lanes] = np.arange(len(lanes))
         for e, lanes in road.internal.items():
@@ -55,7 +55,7 @@ class MergeZone:
             accel_end=min(road.lane(desc.merge_edge, i).length for i in desc.accel_lanes),
             through=through,
             rank=rank,
-            target_rank=desc.target_rank(road),
+            target_rank=net.target_rank(),
         )
 
     def lane_rank(self, snap: Snapshot) -> np.ndarray:

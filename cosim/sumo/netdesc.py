@@ -17,17 +17,15 @@ YAML format (as written by `sumo_net.build`):
 
 from __future__ import annotations
 
-import bisect
 import logging
 from dataclasses import dataclass
-from itertools import accumulate
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from cosim.errors import NetError
-from cosim.roadnet import RoadNet
+from cosim.sumo.roadnet import RoadNet
 
 log = logging.getLogger(__name__)
 
@@ -42,40 +40,6 @@ class NetDescription:
     merge_edge: str  # the highway edge the ramp joins
     accel_lanes: tuple[int, ...]  # lane indices of merge_edge that are not through lanes
     source: str  # the description file's path, or "inferred"
-
-    def highway_offsets(self, roadnet: RoadNet) -> dict[str, float]:
-        """Chainage [m] of each highway edge's start: the lengths of the edges before it and of the ways
-        through the junctions between them (as SUMO's odometer counts them)."""
-        steps = [roadnet.edge_length(a) + roadnet.junction_length(a, b)
-                 for a, b in zip(self.highway, self.highway[1:], strict=False)]
-        return dict(zip(self.highway, [0.0, *accumulate(steps)], strict=True))
-
-    def highway_length(self, roadnet: RoadNet) -> float:
-        """[m] chainage of the end of the last highway edge."""
-        return self.highway_offsets(roadnet)[self.highway[-1]] + roadnet.edge_length(self.highway[-1])
-
-    def highway_position(self, roadnet: RoadNet, s: float) -> tuple[str, float]:
-        """The highway edge and position on it [m] at chainage `s` [m]; ValueError outside the highway."""
-        offsets = self.highway_offsets(roadnet)
-        total = self.highway_length(roadnet)
-        if not 0.0 <= s <= total:
-            raise ValueError(f"chainage {s} m is outside the highway [0, {total:.2f}] m")
-        starts = list(offsets.values())
-        i = bisect.bisect_right(starts, s) - 1
-        edge = self.highway[i]
-        return edge, min(s - starts[i], roadnet.edge_length(edge))  # in a junction: the end of the edge before
-
-    def through_lanes(self, roadnet: RoadNet, edge: str) -> tuple[int, ...]:
-        """Lane indices of `edge` that carry through traffic (all lanes but the acceleration lanes)."""
-        skip = set(self.accel_lanes) if edge == self.merge_edge else set()
-        return tuple(i for i in range(roadnet.num_lanes(edge)) if i not in skip)
-
-    def target_rank(self, roadnet: RoadNet) -> int:
-        """Rank among the merge edge's through lanes (0 = rightmost) of the lane the merging vehicle must enter:
-        the through lane beside the acceleration lanes."""
-        through = self.through_lanes(roadnet, self.merge_edge)
-        beside = max(self.accel_lanes) + 1
-        return through.index(beside if beside in through else min(self.accel_lanes) - 1)
 
 
 def load_net_description(roadnet: RoadNet, description_file: str | Path | None = None) -> NetDescription:
@@ -220,7 +184,9 @@ def _chain(roadnet: RoadNet, start: str, *, upstream: bool, one_lane: bool = Fal
             # The predecessor with the most lanes connecting into `cur` (the highway beats a joining ramp).
             cands = [(len(roadnet.connections(p, cur)), p) for p in roadnet.predecessors(cur)]
         else:
-            lanes = through.through_lanes(roadnet, cur) if through else range(roadnet.num_lanes(cur))
+            # Through lanes only: the acceleration lanes end (`through` is the description found so far).
+            skip = set(through.accel_lanes) if through and cur == through.merge_edge else set()
+            lanes = [i for i in range(roadnet.num_lanes(cur)) if i not in skip]
             counts: dict[str, int] = {}
             for i in lanes:
                 for e, _ in roadnet.lane(cur, i).successors:

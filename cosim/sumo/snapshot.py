@@ -1,6 +1,6 @@
 """The state of every vehicle at one instant, as numpy arrays: what everything downstream of libsumo reads.
 
-Contract: a `Snapshot` is produced by `cosim.session` once per decision step and never refers back to
+Contract: a `Snapshot` is produced by `cosim.sumo.session` once per decision step and never refers back to
 libsumo, so observation, reward and termination are pure functions of it (and unit-testable on
 hand-built snapshots, see `Snapshot.build`). Row order is arbitrary; use `row_of` to find a vehicle.
 Positions are vehicle centres in SUMO's world frame [m]; headings are radians, counter-clockwise from +x.

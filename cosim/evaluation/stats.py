@@ -1,0 +1,154 @@
+"""Evaluation metrics: per-episode bookkeeping from snapshots, and summaries with confidence intervals (pure).
+
+Contract:
+- `mean_ci(values, confidence)` is the mean with a two-sided Student-t interval over the finite values
+  (NaNs, e.g. the time to merge of an episode without a merge, are left out); with one value the interval
+  is NaN, with none the mean is NaN too. `rate_ci(values, confidence)` is the proportion of 0/1 values with
+  the Wilson score interval, which stays inside [0, 1] and has a width even at 0 or 1 (a t-interval would
+  collapse to [0, 0] when no episode crashed); it is defined from one value on. `summarize(rows)` applies
+  `rate_ci` to the rates of `RATE_METRICS` (crash %, merge success %) and `mean_ci` to every other metric
+  of `SUMMARY_METRICS`, over per-episode rows (dicts, as written to `episodes.csv`).
+- `Chainage.from_net(desc, road)` places every highway and ramp edge on one longitudinal axis [m]: highway
+  edges at their start's distance from the first highway edge's start, ramp edges so that the ramp's end
+  meets the merge edge's start. `Chainage.of(snap)` is each vehicle's front bumper on that axis (NaN on
+  junction-internal and foreign edges).
+- `guide_av(snap)` is the AV nearest (centre to centre) to the merging vehicle, or None.
+- `EpisodeTracker(zone, chainage)` is fed every snapshot of an episode (`observe(snap, actions, status)`,
+  the reset snapshot first) and gives the episode's row (`row()`): its length in decision steps, crash
+  (any, and by class), merge success (`cosim.environment.episode.merge_status`, the env's definition) and time to
+  merge, distance [m] and mean speed [m/s] by class (over every vehicle seen), the merging vehicle's
+  distance, the guide AV (nearest the merging vehicle when it merges, else at its last appearance) and the
+  guide's actions. `MergeEnv` owns one (its `infos["episode"]` summary is its row); with `record=True` it
+  also keeps per-step trajectories (`trajectory()`) for plots.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import scipy.stats
+
+# Summary label -> (episodes.csv column, scale). Booleans become percentages by the x100 scale.
+SUMMARY_METRICS: dict[str, tuple[str, float]] = {
+    "crash [%]": ("crashed", 100.0),
+    "crash, AV at fault [%]": ("cause_av", 100.0),
+    "crash, HV into AV [%]": ("cause_hv_into_av", 100.0),
+    "crash, merging vehicle [%]": ("cause_merger", 100.0),
+    "merge success [%]": ("merged", 100.0),
+    "time to merge [s]": ("time_to_merge", 1.0),
+    "mean distance [m]": ("mean_distance", 1.0),
+    "AV distance [m]": ("av_distance", 1.0),
+    "HV distance [m]": ("hv_distance", 1.0),
+    "merger distance [m]": ("merger_distance", 1.0),
+    # Over the flow window from SUMO's tripinfo: a crash that ends the episode early cannot raise it. No mean
+    # travel time: every trip is cut at the window's end, so it would equal the window for every policy.
+    "mean speed [m/s]": ("window_speed", 1.0),
+    "throughput [veh/h]": ("throughput_vph", 1.0),
+    "time loss [s]": ("time_loss", 1.0),
+}
+# Labels of SUMMARY_METRICS whose column is 0/1 per episode: Wilson score intervals, not t-intervals.
+RATE_METRICS: frozenset[str] = frozenset(label for label, (_, scale) in SUMMARY_METRICS.items() if scale == 100.0)
+
+
+# -- statistics ----------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Interval:
+    mean: float
+    low: float  # NaN with fewer than two values (a t-interval) or none (a rate's)
+    high: float
+    n: int  # finite values used
+
+    def as_dict(self) -> dict[str, float | int]:
+        return {"mean": self.mean, "ci_low": self.low, "ci_high": self.high, "n": self.n}
+
+
+def mean_ci(values: Iterable[float], confidence: float = 0.95) -> Interval:
+    """Mean and two-sided t-interval of the finite values."""
+    x = np.asarray([float(v) for v in values], dtype=np.float64)
+    x = x[np.isfinite(x)]
+    n = int(x.size)
+    if n == 0:
+        return Interval(math.nan, math.nan, math.nan, 0)
+    mean = float(x.mean())
+    if n == 1:
+        return Interval(mean, math.nan, math.nan, 1)
+    half = float(scipy.stats.t.ppf(0.5 + confidence / 2.0, n - 1)) * float(x.std(ddof=1)) / math.sqrt(n)
+    return Interval(mean, mean - half, mean + half, n)
+
+
+def rate_ci(values: Iterable[float], confidence: float = 0.95) -> Interval:
+    """Proportion of ones among the finite 0/1 values, with its two-sided Wilson score interval.
+
+    Unlike a t-interval it is never zero-width at a rate of 0 or 1 and never leaves [0, 1]."""
+    x = np.asarray([float(v) for v in values], dtype=np.float64)
+    x = x[np.isfinite(x)]
+    if not np.all((x == 0.0) | (x == 1.0)):
+        raise ValueError(f"rate_ci: expected 0/1 values, got {sorted(set(x.tolist()) - {0.0, 1.0})[:3]}")
+    n = int(x.size)
+    if n == 0:
+        return Interval(math.nan, math.nan, math.nan, 0)
+    k = int(x.sum())
+    ci = scipy.stats.binomtest(k, n).proportion_ci(confidence_level=confidence, method="wilson")
+    return Interval(k / n, float(ci.low), float(ci.high), n)
+
+
+def _number(value: Any) -> float:
+    """A CSV cell or a Python value as a float: booleans as 0/1, empty or unparsable as NaN."""
+    if isinstance(value, bool | np.bool_):
+        return float(value)
+    if isinstance(value, str):
+        v = value.strip().lower()
+        if v in ("true", "false"):
+            return float(v == "true")
+        try:
+            return float(v) if v else math.nan
+        except ValueError:
+            return math.nan
+    try:
+        return math.nan if value is None else float(value)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95,
+              metrics: Mapping[str, tuple[str, float]] = SUMMARY_METRICS) -> dict[str, dict[str, float | int]]:
+    """Metric label -> {mean, ci_low, ci_high, n} over the episodes; metrics missing from the rows are left out.
+
+    Rates (`RATE_METRICS`) get Wilson score intervals, every other metric a t-interval (module doc)."""
+    out = {}
+    for label, (column, scale) in metrics.items():
+        if not any(column in r for r in rows):
+            continue
+        values = [_number(r.get(column)) for r in rows]
+        ci = rate_ci(values, confidence) if label in RATE_METRICS else mean_ci(values, confidence)
+        out[label] = Interval(ci.mean * scale, ci.low * scale, ci.high * scale, ci.n).as_dict()
+    return out
+
+
+def _cell(stats: Mapping[str, float] | None) -> str:
+    if not stats or not math.isfinite(stats["mean"]):
+        return "-"
+    mean, low, high = stats["mean"], stats["ci_low"], stats["ci_high"]
+    digits = 0 if abs(mean) >= 100 else 1 if abs(mean) >= 10 else 2
+    if not (math.isfinite(low) and math.isfinite(high)):
+        return f"{mean:.{digits}f}"
+    return f"{mean:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
+
+
+def format_table(summaries: Mapping[str, Mapping[str, Mapping[str, float]]], episodes: Mapping[str, int],
+                 markdown: bool = False, confidence: float = 0.95) -> str:
+    """One row per metric, one column per run: 'mean [CI low, CI high]' (plain text or Markdown)."""
+    labels = [label for label in SUMMARY_METRICS if any(label in s for s in summaries.values())]
+    header = [f"metric (mean [{confidence:.0%} CI])", *(f"{run} (n={episodes[run]})" for run in summaries)]
+    rows = [[label, *(_cell(s.get(label)) for s in summaries.values())] for label in labels]
+    if markdown:
+        lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+        lines += ["| " + " | ".join(r) + " |" for r in rows]
+        return "\n".join(lines)
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+    fmt = "  ".join(f"{{:<{w}}}" if i == 0 else f"{{:>{w}}}" for i, w in enumerate(widths))
+    return "\n".join([fmt.format(*header), "  ".join("-" * w for w in widths), *(fmt.format(*r) for r in rows)])
