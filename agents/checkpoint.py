@@ -23,12 +23,14 @@ rng {python, numpy, torch}, train (TrainConfig as a dict), config (Config.to_dic
 from __future__ import annotations
 
 import random
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
+from pettingzoo import ParallelEnv
 
 from agents.model import ActorCritic
 from cosim.errors import CosimError
@@ -168,3 +170,61 @@ def act_agents(policies: Mapping[str, ActorCritic], obs: Mapping[str, np.ndarray
         batch = np.stack([obs[a] for a in names])  # (B, F, C, H, W)
         actions.update(zip(names, policies[names[0]].act(batch, greedy=greedy).tolist(), strict=True))
     return actions
+
+
+@dataclass(frozen=True)
+class TrainedPolicy:
+    """A trained run's networks as a policy of `cosim.evaluation.runner.evaluate` (its `Policy` protocol)."""
+
+    checkpoint: str  # a checkpoint.pt or policy.pt
+    greedy: bool = True  # argmax actions; false: sampled
+    name: ClassVar[str] = "checkpoint"
+    overrides: ClassVar[Mapping[str, Any]] = {}
+
+    def identity(self) -> dict[str, Any]:
+        # Which state of the run is evaluated: a run trained further must not resume its old evaluation.
+        updates = load_policy(self.checkpoint)[1]["counters"].get("updates")
+        return {"checkpoint": self.checkpoint, "greedy": self.greedy,
+                "trained_updates": None if updates is None else int(updates), "model_sha256": None}
+
+    def load(self, env: ParallelEnv, worker: bool) -> Callable[[int], Callable[[Mapping[str, np.ndarray]], dict]]:
+        if worker:
+            torch.set_num_threads(1)  # W evaluation workers on W cores
+        nets, meta = load_policy(self.checkpoint)
+        return episode_actors(nets, meta["spec"], env, self.checkpoint, self.greedy)
+
+
+def episode_actors(nets: Mapping[str, Any], spec: Mapping[str, Any], env: ParallelEnv, path: str | Path,
+                   greedy: bool) -> Callable[[int], Callable[[Mapping[str, np.ndarray]], dict]]:
+    """Episode seed -> (observations -> actions) of networks checked against the env's observations and agents;
+    seeded per episode, so that sampled actions do not depend on which worker plays it."""
+    agents = env.possible_agents
+    shape = tuple(env.observation_space(agents[0]).shape)
+    if tuple(spec["obs_shape"]) != shape:
+        raise CheckpointError(
+            f"checkpoint {path}: observations of shape {tuple(spec['obs_shape'])}, but this net/preset gives "
+            f"{shape} (observation preset {env.cfg.observation.preset!r}); evaluate with the run's config")
+    missing = [a for a in agents if a not in nets]
+    if missing or spec["n_actions"] != env.action_space(agents[0]).n:
+        raise CheckpointError(f"checkpoint {path}: trained for agents {sorted(nets)} with {spec['n_actions']} "
+                              f"actions; this scenario has {agents} with {env.action_space(agents[0]).n}")
+
+    def for_episode(seed: int) -> Callable[[Mapping[str, np.ndarray]], dict]:
+        torch.manual_seed(seed)
+        return lambda obs: act_agents(nets, obs, greedy)
+
+    return for_episode
+
+
+def find_checkpoint(run: Path | None, checkpoint: Path | None) -> Path:
+    """The file to evaluate: `checkpoint`, else the run's small policy file where it has one (the networks
+    alone), else its resumable checkpoint; `CosimError` when there is none."""
+    if run is None and checkpoint is None:
+        raise CosimError("cosim evaluate: give --run RUN (or --checkpoint FILE) for a trained policy, "
+                         "or --policy BASELINE")
+    path = checkpoint or next((run / n for n in (POLICY_NAME, CHECKPOINT_NAME) if (run / n).is_file()),
+                              run / CHECKPOINT_NAME)
+    if not path.is_file():
+        raise CosimError(f"checkpoint {path}: not found; train the run first (cosim train), pass "
+                         f"--checkpoint FILE, or evaluate a baseline with --policy")
+    return path.resolve()

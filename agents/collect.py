@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from agents.multiagent import Batch, MultiAgentPolicy
-from agents.rollout import WorkerPool
+from cosim.workers import WorkerPool
 
 
 @dataclass

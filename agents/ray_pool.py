@@ -1,4 +1,4 @@
-"""Rollout workers as Ray actors (`cosim train --backend ray`): the contract of `agents.rollout.WorkerPool`.
+"""Rollout workers as Ray actors (`cosim train --backend ray`): the contract of `cosim.workers.WorkerPool`.
 
 Contract: `RayWorkerPool(env_factory, workers, max_restarts, timeout, address)` connects to Ray (`connect`:
 `address` "auto" or HOST:PORT, a running cluster; None, a local Ray started for this process) and starts
@@ -29,7 +29,8 @@ from typing import Any
 
 import numpy as np
 
-from agents.rollout import (
+from cosim.errors import ConfigError, NetError, SimulationError
+from cosim.workers import (
     START_ATTEMPTS,
     START_TIMEOUT,
     EnvFactory,
@@ -39,7 +40,6 @@ from agents.rollout import (
     WorkerFailure,
     _EnvRunner,
 )
-from cosim.errors import ConfigError, NetError, SimulationError
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +140,7 @@ class _EnvActor:
 
 
 class RayWorkerPool(PoolCommands):
-    """W env actors on Ray behind the interface of `agents.rollout.WorkerPool` (module doc)."""
+    """W env actors on Ray behind the interface of `cosim.workers.WorkerPool` (module doc)."""
 
     def __init__(self, env_factory: EnvFactory, workers: int, max_restarts: int = 100, timeout: float = 60.0,
                  address: str | None = None) -> None:

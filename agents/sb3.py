@@ -13,19 +13,24 @@ as an actor with `ActorCritic.act`'s signature.
 from __future__ import annotations
 
 import functools
+import hashlib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import gymnasium
 import numpy as np
 import supersuit as ss
 import torch
+from pettingzoo import ParallelEnv
 from stable_baselines3 import PPO
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecMonitor
 from supersuit.vector import MakeCPUAsyncConstructor
 from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 
+from agents.checkpoint import act_agents
 from agents.config import TrainConfig
 from agents.model import VelocityMapEncoder
 from cosim.config import EVAL_SEED_START, Config
@@ -118,3 +123,33 @@ def load_actor(path: Path, obs_shape: tuple[int, ...], n_actions: int) -> Sb3Act
         raise ConfigError(f"--checkpoint {path}: trained on observations {model.observation_space.shape} with "
                           f"{model.action_space.n} actions; this scenario has {obs_shape} and {n_actions}")
     return Sb3Actor(model)
+
+
+@dataclass(frozen=True)
+class Sb3Policy:
+    """A saved SB3 PPO model (`scripts/train_sb3.py`) as a policy of `cosim.evaluation.runner.evaluate`: one
+    network for all AVs, batched as the project's own policies are (`agents.checkpoint.act_agents`)."""
+
+    model: str  # the model .zip
+    greedy: bool = True
+    name: ClassVar[str] = "sb3"
+    overrides: ClassVar[Mapping[str, Any]] = {}
+
+    def identity(self) -> dict[str, Any]:
+        # An SB3 model has no update counter: its content tells a retrained model from the evaluated one.
+        sha = hashlib.sha256(Path(self.model).read_bytes()).hexdigest()
+        return {"checkpoint": self.model, "greedy": self.greedy, "trained_updates": None, "model_sha256": sha}
+
+    def load(self, env: ParallelEnv, worker: bool) -> Callable[[int], Callable[[Mapping[str, np.ndarray]], dict]]:
+        if worker:
+            torch.set_num_threads(1)
+        agents = env.possible_agents
+        actor = load_actor(Path(self.model), tuple(env.observation_space(agents[0]).shape),
+                           int(env.action_space(agents[0]).n))
+        actors = dict.fromkeys(agents, actor)
+
+        def for_episode(seed: int) -> Callable[[Mapping[str, np.ndarray]], dict]:
+            torch.manual_seed(seed)
+            return lambda obs: act_agents(actors, obs, self.greedy)
+
+        return for_episode

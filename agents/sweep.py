@@ -19,37 +19,27 @@ and `out` must be on a file system that every machine of the cluster sees.
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import math
-import shlex
 import shutil
-import sys
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from agents.config import train_config
-from agents.rollout import Backend, add_backend_arguments
-from cosim.cli import add_config_arguments
+from agents.rollout import Backend
 from cosim.config import EVAL_SEED_START, Config, load_config
 from cosim.errors import ConfigError, SimulationError
-from cosim.evaluation.runner import PolicySpec, evaluate, read_rows
-from cosim.evaluation.stats import format_table, rate_ci, summarize
+from cosim.evaluation.report import ALTRUISTIC, EGOISTIC
+from cosim.evaluation.runner import Baseline, evaluate
+from cosim.evaluation.store import run_name
 from cosim.files import atomic_write_text
 
 log = logging.getLogger(__name__)
 
 BASELINES = ("idle", "scripted", "courteous", "sumo")
-EGOISTIC, ALTRUISTIC = 0.0, math.pi / 4
-
-
-def run_name(phi: float, seed: int) -> str:
-    return f"phi_{phi:.4f}_seed_{seed}"
 
 
 def sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], budget_min: float,
@@ -58,6 +48,13 @@ def sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], b
     """Run (or continue) the sweep into `out`; returns the report's data (module doc)."""
     if not phis or not seeds:
         raise ConfigError("cosim sweep: give at least one --phi and one --seed")
+    if budget_min <= 0:
+        raise ConfigError(f"--budget-min: must be > 0, got {budget_min}")
+    if eval_episodes < 1 or eval_workers < 1:
+        raise ConfigError("--eval-episodes and --eval-workers: must be >= 1")
+    for phi in phis:
+        if not -math.pi <= phi <= math.pi:
+            raise ConfigError(f"--phi: expected angles in radians within [-pi, pi], got {phi}")
     backend = backend or Backend()
     backend.check()
     out = Path(out).resolve()  # Ray tasks on other machines find it there (a shared file system)
@@ -76,7 +73,7 @@ def _sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], 
     walls: dict[str, float] = _load_walls(out)
     for name in baselines:
         t0 = time.perf_counter()
-        evaluate(cfg, PolicySpec(name), out / "baselines" / name, episodes=eval_episodes, seed=EVAL_SEED_START,
+        evaluate(cfg, Baseline(name), out / "baselines" / name, episodes=eval_episodes, seed=EVAL_SEED_START,
                  workers=eval_workers, trajectories=0, plots=False)
         _add_wall(walls, f"evaluate {name}", t0)
     atomic_write_text(out / "walls.json", json.dumps(walls, indent=2) + "\n")
@@ -160,7 +157,7 @@ def _load_walls(out: Path) -> dict[str, float]:
 def _train_and_evaluate(cfg: Config, out: Path, budget_min: float, eval_episodes: int, eval_workers: int,
                         phi: float, seed: int, backend: str = "local") -> dict[str, float]:
     """Train (or finish training) and evaluate one run; returns the wall times [s] of what it did."""
-    from agents.checkpoint import CHECKPOINT_NAME, read_checkpoint
+    from agents.checkpoint import CHECKPOINT_NAME, TrainedPolicy, read_checkpoint
     from agents.train import train
 
     walls: dict[str, float] = {}
@@ -182,7 +179,7 @@ def _train_and_evaluate(cfg: Config, out: Path, budget_min: float, eval_episodes
             raise KeyboardInterrupt
         shutil.rmtree(run_dir / "eval", ignore_errors=True)  # an evaluation of an earlier state of the run
     t0 = time.perf_counter()
-    evaluate(run_cfg, PolicySpec("checkpoint", str(ckpt.resolve())), run_dir / "eval", episodes=eval_episodes,
+    evaluate(run_cfg, TrainedPolicy(str(ckpt.resolve())), run_dir / "eval", episodes=eval_episodes,
              seed=EVAL_SEED_START, workers=eval_workers, trajectories=3, run_dir=run_dir, plots=False)
     _add_wall(walls, f"evaluate {name}", t0)
     return walls
@@ -191,56 +188,3 @@ def _train_and_evaluate(cfg: Config, out: Path, budget_min: float, eval_episodes
 def _add_wall(walls: dict[str, float], key: str, t0: float) -> None:
     """Wall time [s] of a step, summed over the invocations that worked on it (an interrupted sweep resumes)."""
     walls[key] = walls.get(key, 0.0) + time.perf_counter() - t0
-
-
-def pooled(eval_dirs: Sequence[Path], first_seed: int, episodes: int) -> tuple[list[dict[str, str]], dict]:
-    """The evaluation rows of several folders (one per training seed), pooled, and their summary."""
-    wanted = range(first_seed, first_seed + episodes)
-    rows = [r for d in eval_dirs for r in read_rows(d / "episodes.csv") if int(r["seed"]) in wanted]
-    return rows, summarize(rows)
-
-
-def rate(rows: Sequence[dict[str, str]], column: str) -> dict[str, float]:
-    ci = rate_ci([float(r[column] == "True") if r[column] in ("True", "False") else float(r[column]) for r in rows])
-    return {"mean": 100 * ci.mean, "ci_low": 100 * ci.low, "ci_high": 100 * ci.high, "n": ci.n}
-
-
-def values(rows: Sequence[Mapping[str, str]], column: str) -> np.ndarray:
-    """A column's values in the rows that have one."""
-    return np.array([float(r[column]) for r in rows if r.get(column) not in (None, "", "nan")])
-
-
-def median(rows: Sequence[dict[str, str]], column: str) -> float:
-    got = values(rows, column)
-    return float(np.median(got)) if got.size else math.nan
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_config_arguments(parser)
-    parser.add_argument("--phi", type=float, nargs="+", required=True, metavar="RAD",
-                        help="SVO angles [rad] to train, e.g. 0 0.3927 0.7854 1.1781 1.5708")
-    parser.add_argument("--seeds", type=int, nargs="+", required=True, help="training seeds, e.g. 0 1 2")
-    parser.add_argument("--budget-min", type=float, required=True, help="training wall-clock budget per run [min]")
-    parser.add_argument("--eval-episodes", type=int, default=100, help="evaluation episodes per run and baseline")
-    parser.add_argument("--eval-workers", type=int, default=2, help="evaluation worker processes")
-    parser.add_argument("--baselines", nargs="*", choices=BASELINES, default=list(BASELINES))
-    parser.add_argument("--out", type=Path, default=Path("runs/sweep"), help="sweep folder (default: %(default)s); "
-                        "with --backend ray on several machines, on a file system they all share")
-    add_backend_arguments(parser)
-
-
-def run(args: argparse.Namespace) -> int:
-    if args.budget_min <= 0:
-        raise ConfigError(f"--budget-min: must be > 0, got {args.budget_min}")
-    if args.eval_episodes < 1 or args.eval_workers < 1:
-        raise ConfigError("--eval-episodes and --eval-workers: must be >= 1")
-    for phi in args.phi:
-        if not -math.pi <= phi <= math.pi:
-            raise ConfigError(f"--phi: expected angles in radians within [-pi, pi], got {phi}")
-    cfg = load_config(args.config, args.overrides)
-    command = "cosim sweep " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["sweep"] else ""
-    result = sweep(cfg, args.out, args.phi, args.seeds, args.budget_min, args.eval_episodes, args.eval_workers,
-                   args.baselines, command, Backend(args.backend, args.ray_address))
-    log.info("wrote %s", args.out / "report.md")
-    print(format_table(result["table"], result["episodes"]))
-    return 0

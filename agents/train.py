@@ -16,8 +16,6 @@ failure are masked out, never padded into the loss.
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
 import functools
 import logging
 import random
@@ -48,11 +46,12 @@ from agents.collect import Collected, collect
 from agents.config import TrainConfig, check_device, train_config
 from agents.logs import RunLogger
 from agents.multiagent import Batch, MultiAgentPolicy
-from agents.rollout import Backend, EnvFactory, add_backend_arguments
-from cosim.cli import Heartbeat, add_config_arguments
-from cosim.config import EVAL_SEED_START, Config, load_config
+from agents.rollout import Backend
+from cosim.config import EVAL_SEED_START, Config
 from cosim.errors import ConfigError
 from cosim.files import atomic_write_text, stale_temporaries
+from cosim.progress import Heartbeat
+from cosim.workers import EnvFactory
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +89,7 @@ RESUMABLE = frozenset({"train.episodes", "train.budget_min", "train.checkpoint_e
 
 def run_config(cfg: Config, tc: TrainConfig) -> dict[str, Any]:
     """What a run's config.yaml holds: the resolved config with the train section as trained."""
-    return {**cfg.to_dict(), "train": dataclasses.asdict(tc)}
+    return {**cfg.to_dict(), "train": tc.model_dump()}
 
 
 def _flat(data: Any, prefix: str = "") -> dict[str, Any]:
@@ -189,9 +188,9 @@ class _Run:
         backend = backend or Backend()
         backend.check()
         tc = train_config(cfg)
-        tc = dataclasses.replace(tc, workers=workers or tc.workers, episodes=episodes or tc.episodes,
-                                 budget_min=tc.budget_min if budget_min is None else budget_min,
-                                 device=device or tc.device)
+        tc = tc.model_copy(update={"workers": workers or tc.workers, "episodes": episodes or tc.episodes,
+                                   "budget_min": tc.budget_min if budget_min is None else budget_min,
+                                   "device": device or tc.device})
         check_device(tc.device, "--device")
         if tc.device.startswith("cuda") and not torch.cuda.is_available():
             raise ConfigError(f"--device {tc.device}: CUDA is not available on this machine")
@@ -353,7 +352,7 @@ class _Run:
             "spec": self.spec, "policy": self.policy.state_dict(),
             "counters": {**self.counters, "train_s": self.train_s},
             "rng": rng_state() if self.boundary_rng is None else self.boundary_rng,
-            "train": dataclasses.asdict(self.tc), "config": self.cfg.to_dict(), "phis": list(self.cfg.phis())})
+            "train": self.tc.model_dump(), "config": self.cfg.to_dict(), "phis": list(self.cfg.phis())})
 
     def close(self) -> None:
         self.bar.close()
@@ -374,38 +373,3 @@ class _Run:
                            c["lost_episodes"], self.interrupted, self.logger.rate("return_mean"),
                            time.perf_counter() - self.start, self.timing["rollout"], self.timing["update"],
                            c["samples"] - self.start_samples, self.train_s)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """The `cosim train` options."""
-    add_config_arguments(parser)
-    parser.add_argument("--out", type=Path, default=None, help="run folder (default: runs/<config stem>)")
-    parser.add_argument("--workers", type=int, default=None, help="rollout worker processes (default: train.workers)")
-    parser.add_argument("--episodes", type=int, default=None, help="episodes in total (default: train.episodes)")
-    parser.add_argument("--budget-min", type=float, default=None,
-                        help="wall-clock training budget over the whole run [min] (default: train.budget_min)")
-    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
-    parser.add_argument("--allow-config-change", action="store_true",
-                        help="with --resume: continue although the config differs from the run's (the differences "
-                             "are recorded in RUN/config_changes.yaml)")
-    parser.add_argument("--device", default=None, help="cpu | cuda | cuda:N (default: train.device)")
-    add_backend_arguments(parser)
-    return parser
-
-
-def run(args: argparse.Namespace) -> int:
-    """Run `cosim train` from parsed arguments; returns the exit code (130 when interrupted)."""
-    for name in ("workers", "episodes"):
-        value = getattr(args, name)
-        if value is not None and value <= 0:
-            raise ConfigError(f"--{name}: must be > 0, got {value}")
-    if args.budget_min is not None and args.budget_min < 0:
-        raise ConfigError(f"--budget-min: must be >= 0, got {args.budget_min}")
-    cfg = load_config(args.config, overrides=args.overrides)
-    out = args.out or Path("runs") / Path(args.config).stem
-    result = train(cfg, out, workers=args.workers, episodes=args.episodes, budget_min=args.budget_min,
-                   resume=args.resume, device=args.device, allow_config_change=args.allow_config_change,
-                   backend=args.backend, ray_address=args.ray_address)
-    log.info("trained %d episodes (%d updates, %d agent-samples, %.0f s) into %s", result.episodes, result.updates,
-             result.samples, result.train_s, result.out_dir)
-    return 130 if result.interrupted else 0

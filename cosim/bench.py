@@ -8,7 +8,6 @@
 
 from __future__ import annotations
 
-import argparse
 import logging
 import shutil
 import tempfile
@@ -18,17 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from cosim.cli import add_config_arguments
-from cosim.config import OBSERVATION_PRESETS, load_config
+from cosim.config import OBSERVATION_PRESETS, Config, load_config
 from cosim.environment.merge_env import MergeEnv
 
 log = logging.getLogger(__name__)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_config_arguments(parser)
-    parser.add_argument("--episodes", type=int, default=20, help="episodes per measurement")
-    parser.add_argument("--resets", type=int, default=40, help="resets per measurement")
 
 
 def _env_rate(env: MergeEnv, episodes: int, keep_routes: Path | None = None) -> tuple[float, float]:
@@ -104,8 +96,8 @@ def _bare(base_args: list[str], routes: Path, steps_per_decision: int, decisions
     return out
 
 
-def run(args: argparse.Namespace) -> int:
-    cfg = load_config(args.config, args.overrides)
+def bench(cfg: Config, episodes: int = 20, resets: int = 40) -> None:
+    """Measure and print (module doc)."""
     tmp = Path(tempfile.mkdtemp(prefix="cosim_bench_"))
     try:
         results = {}
@@ -113,20 +105,20 @@ def run(args: argparse.Namespace) -> int:
             sizes = {f"observation.{k}": v for k, v in OBSERVATION_PRESETS[preset].items()}
             env = MergeEnv(load_config(cfg, {"observation.preset": preset, **sizes}))
             try:
-                step_s, rate = _env_rate(env, args.episodes, tmp if preset == "default" else None)
+                step_s, rate = _env_rate(env, episodes, tmp if preset == "default" else None)
                 results[preset] = (step_s, rate, env.mapper.shape, env.mapper.dtype)
                 if preset == "default":
-                    reset_s = _reset_time(env, args.resets)
+                    reset_s = _reset_time(env, resets)
                     sumo_args, decisions = list(env.session.args), env.max_steps
             finally:
                 env.close()
-        bare = _bare(sumo_args, tmp, cfg.steps_per_decision, decisions, args.episodes, args.resets)
+        bare = _bare(sumo_args, tmp, cfg.steps_per_decision, decisions, episodes, resets)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     a = min(bare["getters"], bare["subscriptions"])
     n = cfg.scenario.n_avs
     print(f"scenario: {cfg.net.file}, {n} AVs + {cfg.scenario.n_hvs} HVs, {cfg.steps_per_decision} SUMO steps"
-          f" per decision, {args.episodes} episodes of {decisions} decisions")
+          f" per decision, {episodes} episodes of {decisions} decisions")
     print(f"(a) bare libsumo, getters      : {bare['getters'] * 1e3:7.3f} ms/decision")
     print(f"(a) bare libsumo, subscriptions: {bare['subscriptions'] * 1e3:7.3f} ms/decision")
     for tag, preset in (("b", "default"), ("c", "paper")):
@@ -139,4 +131,3 @@ def run(args: argparse.Namespace) -> int:
               f"{obs_bytes / shape[0] / 1024:6.1f} KiB if only the newest frame is stored")
     print(f"(d) reset: env {reset_s * 1e3:6.2f} ms vs bare libsumo.load {bare['load'] * 1e3:6.2f} ms, "
           f"ratio {reset_s / bare['load']:4.2f}")
-    return 0

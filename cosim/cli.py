@@ -1,35 +1,315 @@
-"""The `cosim` command: one subcommand per job, each living in the module that owns the job.
+"""The `cosim` command: every subcommand's options and what it runs, here and nowhere else.
 
-Contract: every subcommand module exposes `add_arguments(parser)` and `run(args) -> int`. Modules are
-imported only when their subcommand runs, so `cosim build-net` never loads torch. A `CosimError`
-(bad config, bad net, SUMO failure) or an OS error (a folder that cannot be written, a file where a folder
-should be) is printed as one line, exit status 2, not a traceback. Ctrl-C (SIGINT) and SIGTERM stop a
-command cleanly (a training run writes its checkpoint first) with exit status 130.
+Contract: each subcommand is a pair of functions below, `_NAME_arguments(parser)` and `_NAME(args) -> int`,
+listed in `COMMANDS`; they parse and check the command line and call the library (`sumo_net.build`,
+`cosim.environment`, `cosim.bench`, `agents.train`, `agents.sweep`, `cosim.evaluation`). This module is the
+composition root: the only place in `cosim` that reaches into `agents`, and only inside the commands that need
+it, so `cosim build-net` never loads torch. A `CosimError` (bad config, bad net, SUMO failure) or an OS error
+(a folder that cannot be written, a file where a folder should be) is printed as one line, exit status 2, not
+a traceback. Ctrl-C (SIGINT) and SIGTERM stop a command cleanly (a training run writes its checkpoint first)
+with exit status 130.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import logging
+import shlex
+import shutil
 import signal
 import sys
-import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
 
+from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from cosim.errors import CosimError
+from cosim.config import EVAL_SEED_START
+from cosim.errors import ConfigError, CosimError
 
-# subcommand -> (module, one-line help)
-COMMANDS: dict[str, tuple[str, str]] = {
-    "build-net": ("sumo_net.build", "build an on-ramp merge network with netconvert"),
-    "run-scenario": ("cosim.run_scenario", "run the env with a scripted or random policy"),
-    "bench": ("cosim.bench", "measure env speed against a bare libsumo loop"),
-    "train": ("agents.train", "train AV policies with multi-agent A2C or PPO"),
-    "sweep": ("agents.sweep", "train and evaluate every (SVO angle, seed) within a budget, report against baselines"),
-    "evaluate": ("cosim.evaluation.runner", "evaluate trained AVs or a baseline policy"),
-    "compare": ("cosim.evaluation.compare", "compare evaluated runs: tables, plots, Markdown report"),
+log = logging.getLogger("cosim")
+
+
+# -- shared options ------------------------------------------------------------------------------------
+def add_config_arguments(parser: argparse.ArgumentParser, default: str | None = "configs/default.yaml") -> None:
+    """The config options every env-using command shares."""
+    parser.add_argument("--config", default=default, help="experiment YAML (default: %(default)s)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a config key, e.g. --set reward.phi=0.785 (repeatable); a path given here "
+                             "(net.file) is relative to the working directory, one in a YAML file to that file")
+
+
+def _backend_arguments(parser: argparse.ArgumentParser) -> None:
+    from agents.rollout import BACKENDS
+
+    parser.add_argument("--backend", choices=BACKENDS, default="local",
+                        help="rollout workers as local processes (default) or as Ray actors (pip install -e "
+                             "\".[ray]\"); a training run's learner stays in its own process, a sweep's runs are "
+                             "Ray tasks")
+    parser.add_argument("--ray-address", default=None, metavar="auto|HOST:PORT",
+                        help="with --backend ray: the Ray cluster to join (auto: the one `ray start` runs here); "
+                             "default: start a local Ray")
+
+
+def _positive(args: argparse.Namespace, *names: str, least: int = 1) -> None:
+    for name in names:
+        value = getattr(args, name.replace("-", "_"))
+        if value is not None and value < least:
+            raise ConfigError(f"--{name}: must be >= {least}, got {value}")
+
+
+# -- build-net -----------------------------------------------------------------------------------------
+def _build_net_arguments(p: argparse.ArgumentParser) -> None:
+    from sumo_net.build import MergeGeometry
+
+    d = MergeGeometry()
+    p.add_argument("--lanes", type=int, default=d.lanes, help="through lanes of the highway")
+    p.add_argument("--upstream-length", type=float, default=d.upstream_length, help="[m] before the merge")
+    p.add_argument("--accel-length", type=float, default=d.accel_length, help="[m] acceleration lane")
+    p.add_argument("--ramp-length", type=float, default=d.ramp_length, help="[m] on-ramp")
+    p.add_argument("--downstream-length", type=float, default=d.downstream_length, help="[m] after the merge")
+    p.add_argument("--highway-speed", type=float, default=d.highway_speed, help="[m/s] highway speed limit")
+    p.add_argument("--ramp-speed", type=float, default=d.ramp_speed, help="[m/s] ramp speed limit")
+    p.add_argument("--lane-width", type=float, default=d.lane_width, help="[m]")
+    p.add_argument("--name", default=d.name, help="file stem of the outputs")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+
+
+def _build_net(args: argparse.Namespace) -> int:
+    from sumo_net.build import build_merge_net
+
+    net_file = build_merge_net(
+        args.out, lanes=args.lanes, upstream_length=args.upstream_length, accel_length=args.accel_length,
+        ramp_length=args.ramp_length, downstream_length=args.downstream_length,
+        highway_speed=args.highway_speed, ramp_speed=args.ramp_speed, lane_width=args.lane_width,
+        name=args.name)
+    log.info("wrote %s and %s", net_file, net_file.with_name(f"{args.name}.yaml"))
+    return 0
+
+
+# -- run-scenario --------------------------------------------------------------------------------------
+def _run_scenario_arguments(parser: argparse.ArgumentParser) -> None:
+    from cosim.environment.policies import POLICIES
+
+    add_config_arguments(parser)
+    parser.add_argument("--episodes", type=int, default=3, help="episodes to run (default: %(default)s)")
+    parser.add_argument("--policy", choices=sorted(POLICIES), action="append",
+                        help="policy to run, repeatable (default: scripted and random)")
+    parser.add_argument("--seed", type=int, default=None, help="first episode's seed (default: config)")
+    parser.add_argument("--save-routes", type=Path, default=None, metavar="DIR",
+                        help="keep each episode's SUMO route file (vTypes, routes, vehicles) here, e.g. to "
+                             "open it with sumo-gui -n NET -r DIR/episode_SEED.rou.xml")
+
+
+def _run_scenario(args: argparse.Namespace) -> int:
+    from cosim.environment.merge_env import parallel_env
+    from cosim.environment.policies import POLICIES
+
+    _positive(args, "episodes")
+    if args.save_routes is not None:  # before SUMO starts: a bad folder is the user's error, not a lost run
+        args.save_routes.mkdir(parents=True, exist_ok=True)
+    env = parallel_env(args.config, args.overrides)
+    try:
+        first_seed = env.cfg.sim.seed if args.seed is None else args.seed
+        for name in args.policy or ["scripted", "random"]:
+            policy = POLICIES[name](first_seed)
+            for ep in tqdm(range(args.episodes), desc=name, unit="ep", leave=False, disable=None):
+                env.reset(seed=first_seed + ep)
+                if args.save_routes is not None:
+                    shutil.copy(env.route_file, args.save_routes / f"episode_{env.episode_seed}.rou.xml")
+                infos: dict = {}
+                while env.agents:
+                    _, _, _, _, infos = env.step(policy(env))
+                s = next(iter(infos.values()))["episode"]
+                log.info("%-8s seed %-4d crash %-5s merge %-5s mean distance %6.1f m  merger %6.1f m  (%d steps)",
+                         name, s["seed"], s["crashed"], s["merged"], s["mean_distance"], s["merger_distance"],
+                         s["length"])
+    finally:
+        env.close()
+    return 0
+
+
+# -- bench ---------------------------------------------------------------------------------------------
+def _bench_arguments(parser: argparse.ArgumentParser) -> None:
+    add_config_arguments(parser)
+    parser.add_argument("--episodes", type=int, default=20, help="episodes per measurement")
+    parser.add_argument("--resets", type=int, default=40, help="resets per measurement")
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from cosim.bench import bench
+    from cosim.config import load_config
+
+    _positive(args, "episodes", "resets")
+    bench(load_config(args.config, args.overrides), args.episodes, args.resets)
+    return 0
+
+
+# -- train ---------------------------------------------------------------------------------------------
+def _train_arguments(parser: argparse.ArgumentParser) -> None:
+    add_config_arguments(parser)
+    parser.add_argument("--out", type=Path, default=None, help="run folder (default: runs/<config stem>)")
+    parser.add_argument("--workers", type=int, default=None, help="rollout worker processes (default: train.workers)")
+    parser.add_argument("--episodes", type=int, default=None, help="episodes in total (default: train.episodes)")
+    parser.add_argument("--budget-min", type=float, default=None,
+                        help="wall-clock training budget over the whole run [min] (default: train.budget_min)")
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its checkpoint")
+    parser.add_argument("--allow-config-change", action="store_true",
+                        help="with --resume: continue although the config differs from the run's (the differences "
+                             "are recorded in RUN/config_changes.yaml)")
+    parser.add_argument("--device", default=None, help="cpu | cuda | cuda:N (default: train.device)")
+    _backend_arguments(parser)
+
+
+def _train(args: argparse.Namespace) -> int:
+    from agents.train import train
+    from cosim.config import load_config
+
+    _positive(args, "workers", "episodes")
+    if args.budget_min is not None and args.budget_min < 0:
+        raise ConfigError(f"--budget-min: must be >= 0, got {args.budget_min}")
+    cfg = load_config(args.config, overrides=args.overrides)
+    out = args.out or Path("runs") / Path(args.config).stem
+    result = train(cfg, out, workers=args.workers, episodes=args.episodes, budget_min=args.budget_min,
+                   resume=args.resume, device=args.device, allow_config_change=args.allow_config_change,
+                   backend=args.backend, ray_address=args.ray_address)
+    log.info("trained %d episodes (%d updates, %d agent-samples, %.0f s) into %s", result.episodes, result.updates,
+             result.samples, result.train_s, result.out_dir)
+    return 130 if result.interrupted else 0
+
+
+# -- sweep ---------------------------------------------------------------------------------------------
+def _sweep_arguments(parser: argparse.ArgumentParser) -> None:
+    from agents.sweep import BASELINES
+
+    add_config_arguments(parser)
+    parser.add_argument("--phi", type=float, nargs="+", required=True, metavar="RAD",
+                        help="SVO angles [rad] to train, e.g. 0 0.3927 0.7854 1.1781 1.5708")
+    parser.add_argument("--seeds", type=int, nargs="+", required=True, help="training seeds, e.g. 0 1 2")
+    parser.add_argument("--budget-min", type=float, required=True, help="training wall-clock budget per run [min]")
+    parser.add_argument("--eval-episodes", type=int, default=100, help="evaluation episodes per run and baseline")
+    parser.add_argument("--eval-workers", type=int, default=2, help="evaluation worker processes")
+    parser.add_argument("--baselines", nargs="*", choices=BASELINES, default=list(BASELINES))
+    parser.add_argument("--out", type=Path, default=Path("runs/sweep"), help="sweep folder (default: %(default)s); "
+                        "with --backend ray on several machines, on a file system they all share")
+    _backend_arguments(parser)
+
+
+def _sweep(args: argparse.Namespace) -> int:
+    from agents.rollout import Backend
+    from agents.sweep import sweep
+    from cosim.config import load_config
+    from cosim.evaluation.stats import format_table
+
+    cfg = load_config(args.config, args.overrides)
+    command = "cosim sweep " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["sweep"] else ""
+    result = sweep(cfg, args.out, args.phi, args.seeds, args.budget_min, args.eval_episodes, args.eval_workers,
+                   args.baselines, command, Backend(args.backend, args.ray_address))
+    log.info("wrote %s", args.out / "report.md")
+    print(format_table(result["table"], result["episodes"]))
+    return 0
+
+
+# -- evaluate ------------------------------------------------------------------------------------------
+def _evaluate_arguments(parser: argparse.ArgumentParser) -> None:
+    from cosim.evaluation.runner import BASELINES
+
+    add_config_arguments(parser, default=None)
+    parser.add_argument("--run", type=Path, help="training run folder (its config.yaml and checkpoint.pt)")
+    parser.add_argument("--checkpoint", type=Path, help="checkpoint file (default: RUN/checkpoint.pt)")
+    parser.add_argument("--policy", choices=["checkpoint", "sb3", *BASELINES], default="checkpoint",
+                        help="a baseline instead of a checkpoint: sumo (SUMO drives the AVs), idle, random, "
+                             "scripted (egoistic), courteous (lets the merging vehicle in); or sb3, a "
+                             "Stable-Baselines3 model given by --checkpoint (scripts/train_sb3.py) "
+                             "(default: checkpoint)")
+    parser.add_argument("--episodes", type=int, help="evaluation episodes (default: evaluate.episodes, 100)")
+    parser.add_argument("--net", type=Path, help="evaluate on another .net.xml (its description is found "
+                                                 "beside it or inferred)")
+    parser.add_argument("--seed", type=int, help=f"first evaluation seed (default: {EVAL_SEED_START:,}, disjoint "
+                                                 "from training seeds)")
+    parser.add_argument("--workers", type=int, help="worker processes (default: 1)")
+    parser.add_argument("--sample", action="store_true", help="sample actions instead of the greedy argmax")
+    parser.add_argument("--trajectories", type=int, help="episodes whose trajectories are plotted (default: 3)")
+    parser.add_argument("--out", type=Path, help="output folder (default: RUN/eval)")
+    parser.add_argument("--no-plots", action="store_true", help="skip the figures")
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from cosim.config import load_config
+    from cosim.evaluation.runner import Baseline, check_counts, evaluate
+    from cosim.evaluation.stats import format_table
+
+    if args.run is not None and not (args.run / "config.yaml").is_file():
+        raise CosimError(f"--run {args.run}: not a training run folder (no config.yaml; `cosim train` writes one)")
+    config = args.config or (args.run / "config.yaml" if args.run else "configs/default.yaml")
+    overrides = list(args.overrides)
+    if args.net is not None:
+        if not args.net.is_file():
+            raise ConfigError(f"--net {args.net}: not found")
+        overrides += [f"net.file={args.net.resolve()}", "net.description=null"]
+    cfg = load_config(config, overrides)
+    ec = cfg.evaluate
+    episodes = ec.episodes if args.episodes is None else args.episodes
+    workers = ec.workers if args.workers is None else args.workers
+    trajectories = ec.trajectories if args.trajectories is None else args.trajectories
+    check_counts(episodes, workers, trajectories, prefix="--")
+    greedy = ec.greedy and not args.sample
+    out = args.out or (args.run / "eval" if args.run else None)
+    if out is None:
+        raise CosimError("cosim evaluate: give --out DIR for a baseline without --run")
+    policy = _trained_policy(args, greedy) if args.policy in ("checkpoint", "sb3") else Baseline(args.policy)
+    summary = evaluate(cfg, policy, out, episodes=episodes, seed=ec.seed if args.seed is None else args.seed,
+                       workers=workers, trajectories=trajectories, confidence=ec.confidence, run_dir=args.run,
+                       plots=not args.no_plots)
+    log.info("wrote %s", Path(out) / "summary.json")
+    label = out.name if args.run is None else args.run.name
+    print(format_table({label: summary["metrics"]}, {label: summary["episodes"]}, confidence=ec.confidence))
+    return 0
+
+
+def _trained_policy(args: argparse.Namespace, greedy: bool) -> Any:
+    if args.policy == "sb3":
+        if args.checkpoint is None or not args.checkpoint.is_file():
+            raise CosimError(f"--policy sb3: give the model file with --checkpoint FILE (got {args.checkpoint})")
+        try:
+            from agents.sb3 import Sb3Policy
+        except ImportError as exc:
+            raise ConfigError(f"--policy sb3: {exc.name} is missing; pip install -e \".[sb3]\" installs it") from None
+        return Sb3Policy(str(args.checkpoint.resolve()), greedy)
+    from agents.checkpoint import TrainedPolicy, find_checkpoint
+
+    return TrainedPolicy(str(find_checkpoint(args.run, args.checkpoint)), greedy)
+
+
+# -- compare -------------------------------------------------------------------------------------------
+def _compare_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("runs", nargs="+", type=Path, help="evaluation folders, or run folders with eval/")
+    parser.add_argument("--out", type=Path, default=Path("report"), help="report folder (default: %(default)s)")
+    parser.add_argument("--labels", nargs="+", help="one label per run (default: folder names)")
+
+
+def _compare(args: argparse.Namespace) -> int:
+    from cosim.evaluation.compare import compare
+    from cosim.evaluation.stats import format_table
+
+    result = compare(args.runs, args.out, args.labels)
+    log.info("wrote %s", args.out / "report.md")
+    print(format_table({k: v["metrics"] for k, v in result.items()},
+                       {k: int(v["episodes"]) for k, v in result.items()}))
+    return 0
+
+
+Command = tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]
+COMMANDS: dict[str, Command] = {
+    "build-net": ("build an on-ramp merge network with netconvert", _build_net_arguments, _build_net),
+    "run-scenario": ("run the env with a scripted or random policy", _run_scenario_arguments, _run_scenario),
+    "bench": ("measure env speed against a bare libsumo loop", _bench_arguments, _bench),
+    "train": ("train AV policies with multi-agent A2C or PPO", _train_arguments, _train),
+    "sweep": ("train and evaluate every (SVO angle, seed) within a budget, report against baselines",
+              _sweep_arguments, _sweep),
+    "evaluate": ("evaluate trained AVs or a baseline policy", _evaluate_arguments, _evaluate),
+    "compare": ("compare evaluated runs: tables, plots, Markdown report", _compare_arguments, _compare),
 }
 
 
@@ -38,23 +318,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="cosim", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for name, (_, help_text) in COMMANDS.items():
+    for name, (help_text, _, _) in COMMANDS.items():
         sub.add_parser(name, help=help_text, add_help=False)
-    # Parse up to the command name first, so that only the chosen command's module is imported.
+    # Parse up to the command name first, so that only the chosen command's imports happen.
     at = next((i for i, a in enumerate(argv) if a in COMMANDS), len(argv))
     head = parser.parse_args(argv[: at + 1])
-    module = importlib.import_module(COMMANDS[head.command][0])
-    full = argparse.ArgumentParser(prog=f"cosim {head.command}", description=COMMANDS[head.command][1])
+    help_text, add_arguments, run = COMMANDS[head.command]
+    full = argparse.ArgumentParser(prog=f"cosim {head.command}", description=help_text)
     full.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    module.add_arguments(full)
+    add_arguments(full)
     args = full.parse_args(argv[at + 1:])
     logging.basicConfig(level=logging.DEBUG if args.verbose or head.verbose else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
-    log = logging.getLogger("cosim")
     previous = signal.signal(signal.SIGTERM, _terminate)  # a scheduler's stop is handled like Ctrl-C
     try:
         with logging_redirect_tqdm():  # log lines above progress bars, not through them
-            return int(module.run(args) or 0)
+            return int(run(args) or 0)
     except CosimError as exc:
         log.error("%s", exc)
         return 2
@@ -71,30 +350,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _terminate(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
-
-
-class Heartbeat:
-    """True once every `every_s` seconds (the first call included): when a command without a terminal (no
-    progress bar) logs a line."""
-
-    def __init__(self, every_s: float) -> None:
-        self.every_s = every_s
-        self.last = -float("inf")
-
-    def __call__(self) -> bool:
-        now = time.monotonic()
-        if now - self.last >= self.every_s:
-            self.last = now
-            return True
-        return False
-
-
-def add_config_arguments(parser: argparse.ArgumentParser, default: str | None = "configs/default.yaml") -> None:
-    """The config options every env-using command shares."""
-    parser.add_argument("--config", default=default, help="experiment YAML (default: %(default)s)")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config key, e.g. --set reward.phi=0.785 (repeatable); a path given here "
-                             "(net.file) is relative to the working directory, one in a YAML file to that file")
 
 
 if __name__ == "__main__":

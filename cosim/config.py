@@ -1,23 +1,44 @@
-"""Typed experiment config: frozen dataclasses loaded from YAML, validated once at load.
+"""Typed experiment config: frozen pydantic models loaded from YAML, validated once at load.
 
-Contract: `load_config(path_or_dict, overrides)` returns a `Config` or raises `ConfigError` naming the bad
-key. Unknown keys are errors; dotted overrides (`{"reward.phi": 0.785}` or `["reward.phi=0.785"]`) are
-applied before validation. Relative paths in `net` are resolved against the YAML file's folder.
-Units are given in each field's comment.
+Contract: `load_config(path_or_dict_or_Config, overrides)` returns a `Config` or raises `ConfigError` with one
+line per problem, each naming the dotted key (`scenario.n_avs`, `train.lr`) and what is allowed (the bounds,
+the choices, or for an unknown key the section's keys), prefixed with the file when loaded from one. A YAML
+file's `base:` chain and the overrides (`{"reward.phi": 0.785}` or `["reward.phi=0.785"]`, values read as YAML
+scalars) are merged into one raw dict that one `Config.model_validate` checks, so a value is judged the same
+wherever it came from. Unknown keys are errors; missing keys keep the defaults. Relative paths in `net` are
+resolved against the YAML file's folder (in an override or a dict: against the working directory).
+Each field declares its default, bounds and unit (`[unit]` ending its description) in one place, which
+`Config.model_json_schema()` shows. Every section, `train:` and `evaluate:` included, is typed here; the module
+does not import torch, so rollout workers and the CLI read it cheaply.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import math
-import types
-import typing
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from types import MappingProxyType
+from typing import Annotated, Any, Literal, Self, TypeVar, get_args
 
 import yaml
+from pydantic import (
+    AfterValidator,
+    AllowInfNan,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    PlainSerializer,
+    Strict,
+    StrictBool,
+    StrictStr,
+    ValidationError,
+    ValidatorFunctionWrapHandler,
+    WrapValidator,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
 
 from cosim.environment.reward import TERMS
 from cosim.errors import ConfigError
@@ -27,58 +48,186 @@ OBSERVATION_PRESETS: dict[str, dict[str, Any]] = {
     "default": {"frames": 5, "height_px": 32, "width_px": 128, "length_m": 128.0, "width_m": 32.0},
     "paper": {"frames": 10, "height_px": 64, "width_px": 512, "length_m": 256.0, "width_m": 32.0},
 }
-CHANNELS = ("road", "avs", "hvs", "ego_merger")
 # Episode seeds from here on are evaluation's; training draws its seeds below, so the two never meet.
 EVAL_SEED_START = 10_000_000
-AV_DRIVERS = ("env", "sumo")  # who drives the AVs: the agents through the env, or SUMO's own models
-PLACEMENTS = ("window", "stream")  # keys of cosim.sumo.scenario.PLACEMENTS
-ON_COLLISION = ("end", "remove")  # a collision with an AV or the merging vehicle ends the episode, or is removed
-
-
 # The bundled 2-lane merge with a long approach (sumo_net/dilemma), the net of every config that names none.
 DEFAULT_NET = Path(__file__).resolve().parents[1] / "sumo_net" / "dilemma" / "dilemma.net.xml"
 # HVs that never yield to the merging vehicle and keep their lane: no cooperative lane changes or speed
 # adjustments, no lane changes for speed or to keep right (LC2013 / SL2015 parameters).
 NON_YIELDING: dict[str, float] = {"lcCooperative": 0.0, "lcSpeedGain": 0.0, "lcKeepRight": 0.0}
 
-
-@dataclass(frozen=True)
-class NetConfig:
-    file: str = str(DEFAULT_NET)  # the SUMO .net.xml (in a YAML file: relative to that file)
-    # Net description YAML; None: `<net stem>.yaml` beside the net, else inferred from the net.
-    description: str | None = None
-
-
-@dataclass(frozen=True)
-class SimConfig:
-    step_length: float = 0.1  # [s] SUMO step; 0.1 s so side collisions are not stepped over
-    decision_period: float = 1.0  # [s] between two agent decisions
-    horizon: float = 20.0  # [s] episode time limit (truncation)
-    seed: int = 0  # seed of the first episode; each reset without a seed takes the next one
-    collision_mingap_factor: float = 0.0  # 0: only physical overlap is a collision
-    # What a collision that involves an AV or the merging vehicle does: "end" the episode at that SUMO step
-    # (the paper's rule; the wrecks stay where they are), or "remove" the colliders after the decision step
-    # and go on. Collisions among HVs alone never end an episode.
-    on_collision: str = "end"
-    # [s] a collision within this time after one of the two vehicles entered its lane is a lane-change
-    # collision, the fault of the vehicle that changed lanes (crash attribution, cosim.environment.collisions).
-    cut_in_window: float = 2.0
-    stuck_speed: float = 0.5  # [m/s] a merging vehicle slower than this near its lane end has failed
-    stuck_distance: float = 10.0  # [m] ... and this close to the end of the acceleration lane
-    # End the episode when the merging vehicle is stuck. Off by default: it then waits there until the horizon,
-    # as in the paper, and its lost utility shows in the altruistic AVs' rewards (a cut episode would hide it
-    # behind the critic's bootstrap value).
-    end_on_stuck: bool = False
-    sumo_args: tuple[str, ...] = ()  # extra SUMO command-line options
-    # SUMO's own outputs per episode (tripinfo, induction loops), parsed into env.sumo_outputs[seed].
-    outputs: bool = False
-    output_dir: str | None = None  # folder of the per-episode output folders; None: a temp folder
-    detector_offset: float = 100.0  # [m] induction loops this far past the last highway edge's start
-    av_driver: str = "env"  # env: the agents' actions drive the AVs; sumo: SUMO's models (a baseline)
+# Enumerated strings: the Literal is what a field accepts, the tuple what other modules list or look up.
+Channel = Literal["road", "avs", "hvs", "ego_merger"]
+AvDriver = Literal["env", "sumo"]
+Placement = Literal["window", "stream"]
+OnCollision = Literal["end", "remove"]
+Preset = Literal[tuple(OBSERVATION_PRESETS)]  # type: ignore[valid-type]
+Algo = Literal["a2c", "ppo"]
+OptimizerName = Literal["adam", "rmsprop"]
+Precision = Literal["auto", "float32", "bfloat16"]
+CHANNELS: tuple[str, ...] = get_args(Channel)
+AV_DRIVERS: tuple[str, ...] = get_args(AvDriver)  # who drives the AVs: the agents through the env, or SUMO
+PLACEMENTS: tuple[str, ...] = get_args(Placement)  # keys of cosim.sumo.scenario.PLACEMENTS
+ON_COLLISION: tuple[str, ...] = get_args(OnCollision)
+ALGOS: tuple[str, ...] = get_args(Algo)
+OPTIMIZER_NAMES: tuple[str, ...] = get_args(OptimizerName)  # keys of agents.losses.OPTIMIZERS
+PRECISIONS: tuple[str, ...] = get_args(Precision)
 
 
-@dataclass(frozen=True)
-class ScenarioConfig:
+def _problem(message: str, key: str = "") -> PydanticCustomError:
+    """A problem worded for `ConfigError`; `key`: the field a section's validator blames, below that section."""
+    return PydanticCustomError("cosim", "{message}", {"message": message, "key": key})
+
+
+def _no_bool(value: Any) -> Any:
+    # pydantic's lax float reads true as 1.0, which would hide a value put under the wrong key. Strings go on
+    # to it: YAML 1.1 reads 1e-4 (no dot) as a string.
+    if isinstance(value, bool):
+        raise _problem(f"expected a number, got {value!r}")
+    return value
+
+
+def _str_keys(value: Any) -> Any:
+    return {str(k): v for k, v in value.items()} if isinstance(value, Mapping) else value
+
+
+def _as_dict(value: Mapping[str, float]) -> dict[str, float]:
+    return dict(value)
+
+
+# An int key takes no float, bool or string: 2.5 or "3" there is a mistake, not something to round or parse.
+Int = Annotated[int, Strict()]
+Number = Annotated[float, BeforeValidator(_no_bool), AllowInfNan(False)]
+# Read-only, as the rest of a frozen config; serialized as a plain dict.
+NumberMap = Annotated[
+    Mapping[str, Number], BeforeValidator(_str_keys), AfterValidator(MappingProxyType), PlainSerializer(_as_dict)
+]
+# The bounds before the validator, so the JSON schema states them (pydantic leaves them raw after it).
+Angle = Annotated[float, AllowInfNan(False), Field(ge=-math.pi, le=math.pi), BeforeValidator(_no_bool)]
+
+
+def _span(least: float | None = None, why: str = "") -> Any:
+    """A [low, high] pair with low <= high (and `least` <= low): the range a value is drawn from per episode."""
+
+    def shape(value: Any) -> Any:
+        if isinstance(value, list | tuple) and len(value) != 2:
+            raise _problem(f"expected [low, high], got {list(value)}")
+        return value
+
+    def order(pair: tuple[float, float]) -> tuple[float, float]:
+        lo, hi = pair
+        if not (lo <= hi and (least is None or least <= lo)):
+            rule = "low <= high" if least is None else f"{least:g} <= low <= high"
+            raise _problem(f"expected [low, high] with {rule}{why}, got {list(pair)}")
+        return pair
+
+    return Annotated[tuple[Number, Number], BeforeValidator(shape), AfterValidator(order)]
+
+
+Span = _span()
+NonNegativeSpan = _span(0.0)
+SpacingSpan = _span(1.0, " (below the equilibrium gap the stream brakes at once)")
+
+
+def _angles(value: Any, handler: ValidatorFunctionWrapHandler) -> Any:
+    # One line for the field instead of pydantic's one per member of the union.
+    try:
+        return handler(value)
+    except ValidationError as exc:
+        if any(e["type"] in ("greater_than_equal", "less_than_equal") for e in exc.errors()):
+            raise _problem(f"expected an angle in radians within [-pi, pi], got {value!r}") from None
+        raise _problem(f"expected a number or a list of numbers, got {value!r}") from None
+
+
+def _device_problem(device: str) -> str | None:
+    kind, _, index = device.partition(":")
+    if kind not in ("cpu", "cuda") or (index and (kind != "cuda" or not index.isdigit())):
+        return f"expected cpu, cuda or cuda:N, got {device!r}"
+    return None
+
+
+def check_device(device: str, where: str) -> None:
+    """Accept cpu, cuda and cuda:N (`ConfigError` naming `where` otherwise); availability is the learner's."""
+    problem = _device_problem(device)
+    if problem:
+        raise ConfigError(f"{where}: {problem}")
+
+
+class _Section(BaseModel):
+    """A frozen config section. `model_validate` raises `ConfigError` (see `_error`); a section built in code
+    (`ObservationConfig(frames=3)`) raises pydantic's `ValidationError`, a bug of that code, not user input. No
+    custom `__init__` to convert it: pydantic would then call it for every nested section, and the first
+    problem would hide the others and lose its key path."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid", validate_default=True)
+
+    @classmethod
+    def model_validate(cls, obj: Any, **kwargs: Any) -> Self:
+        """pydantic's `model_validate`, raising `ConfigError`; `context` may give `where` (the key path of `obj`,
+        prefixed to every key named) and `source` (the file it came from, prefixed to every line)."""
+        context = kwargs.get("context") or {}
+        try:
+            return super().model_validate(obj, **kwargs)
+        except ValidationError as exc:
+            raise _error(exc, cls, context.get("where", ""), context.get("source")) from None
+
+
+class NetConfig(_Section):
+    file: StrictStr = Field(str(DEFAULT_NET), description="the SUMO .net.xml (in a YAML file: relative to that file)")
+    description: StrictStr | None = Field(
+        None, description="net description YAML; null: `<net stem>.yaml` beside the net, else inferred from the net")
+
+    @field_validator("file", "description")
+    @classmethod
+    def _absolute(cls, path: str | None) -> str | None:
+        # A YAML file's relative paths were made absolute against its folder when it was read (`_read_yaml`);
+        # one still relative came from a dict or a command line, as a shell would read it.
+        return None if path is None else str(_resolve(path, Path.cwd()))
+
+
+class SimConfig(_Section):
+    step_length: Number = Field(0.1, gt=0, description="SUMO step; 0.1 s so side collisions are not stepped over [s]")
+    decision_period: Number = Field(1.0, gt=0, description="between two agent decisions [s]")
+    horizon: Number = Field(20.0, gt=0, description="episode time limit (truncation) [s]")
+    seed: Int = Field(0, description="seed of the first episode; each reset without a seed takes the next one")
+    collision_mingap_factor: Number = Field(0.0, description="0: only physical overlap is a collision [-]")
+    on_collision: OnCollision = Field(
+        "end", description="what a collision that involves an AV or the merging vehicle does: `end` the episode at "
+        "that SUMO step (the paper's rule; the wrecks stay where they are), or `remove` the colliders after the "
+        "decision step and go on. Collisions among HVs alone never end an episode.")
+    cut_in_window: Number = Field(
+        2.0, ge=0, description="a collision within this time after one of the two vehicles entered its lane is a "
+        "lane-change collision, the fault of the vehicle that changed lanes (cosim.environment.collisions) [s]")
+    stuck_speed: Number = Field(
+        0.5, description="a merging vehicle slower than this near its lane end has failed [m/s]")
+    stuck_distance: Number = Field(10.0, description="... and this close to the end of the acceleration lane [m]")
+    # Off by default: the stuck vehicle then waits there until the horizon, as in the paper, and its lost utility
+    # shows in the altruistic AVs' rewards (a cut episode would hide it behind the critic's bootstrap value).
+    end_on_stuck: StrictBool = Field(False, description="end the episode when the merging vehicle is stuck")
+    sumo_args: tuple[StrictStr, ...] = Field((), description="extra SUMO command-line options")
+    outputs: StrictBool = Field(
+        False, description="SUMO's own outputs per episode (tripinfo, induction loops), parsed into "
+        "env.sumo_outputs[seed]")
+    output_dir: StrictStr | None = Field(
+        None, description="folder of the per-episode output folders; null: a temporary folder")
+    detector_offset: Number = Field(
+        100.0, ge=0, description="induction loops this far past the last highway edge's start [m]")
+    av_driver: AvDriver = Field(
+        "env", description="env: the agents' actions drive the AVs; sumo: SUMO's models (a baseline)")
+
+    @model_validator(mode="after")
+    def _whole_steps(self) -> Self:
+        if self.decision_period < self.step_length:
+            raise _problem(f"must be at least step_length ({self.step_length} s), got {self.decision_period} s",
+                           "decision_period")
+        steps = self.decision_period / self.step_length
+        if abs(steps - round(steps)) > 1e-6:
+            raise _problem(f"must be a whole number of SUMO steps (step_length = {self.step_length} s), got "
+                           f"{self.decision_period} s = {steps:.3g} steps", "decision_period")
+        return self
+
+
+class ScenarioConfig(_Section):
     """Where the vehicles start (cosim.sumo.scenario). Ranges [low, high] are drawn uniformly per episode seed.
 
     `placement: stream` (the merge dilemma): a dense stream of HVs and the AVs in the lane the merging vehicle
@@ -89,107 +238,219 @@ class ScenarioConfig:
     [place_from, place_to] with front-to-front gaps in [min_gap, max_gap] and speeds in `speed_range`.
     """
 
-    placement: str = "stream"  # stream | window
-    n_avs: int = 4  # autonomous vehicles (the agents)
-    n_hvs: int = 10  # HVs placed by the window rule (stream: on the lanes beside the stream)
-    place_from: float = 0.0  # [m] along the highway from its first edge's start
-    place_to: float = 640.0  # [m] upstream placement window end
-    min_gap: float = 30.0  # [m] front-to-front spacing between window-placed vehicles in a lane, at least
-    max_gap: float = 60.0  # [m] ... and at most
-    speed_range: tuple[float, float] = (23.0, 28.0)  # [m/s] initial speeds of window-placed vehicles
-    merger_pos: tuple[float, float] = (0.0, 40.0)  # [m] start position along the ramp's first edge
-    merger_speed: tuple[float, float] = (18.0, 22.0)  # [m/s]
-    inflow: float = 0.0  # [veh/h] further HVs entering the highway start during the episode
-    stream_speed: tuple[float, float] = (23.0, 27.0)  # [m/s] the stream's speed
-    stream_head: tuple[float, float] = (0.0, 80.0)  # [m] its first vehicle, past the merge edge's start
-    stream_spacing: tuple[float, float] = (1.0, 1.2)  # [-] factor on each HV's equilibrium gap
-    av_speed_offset: tuple[float, float] = (-1.0, 3.0)  # [m/s] AVs' initial speed minus the stream's
-    # [s] one AV's arrival at the merge edge minus the merging vehicle's (both at their initial speeds)
-    guide_window: tuple[float, float] = (0.0, 3.0)
+    placement: Placement = Field("stream", description="stream | window (see the class docstring)")
+    n_avs: Int = Field(4, gt=0, description="autonomous vehicles (the agents)")
+    n_hvs: Int = Field(10, ge=0, description="HVs placed by the window rule (stream: on the lanes beside the stream)")
+    place_from: Number = Field(0.0, description="along the highway from its first edge's start [m]")
+    place_to: Number = Field(640.0, description="upstream placement window end [m]")
+    min_gap: Number = Field(
+        30.0, gt=0, description="front-to-front spacing between window-placed vehicles in a lane, at least [m]")
+    max_gap: Number = Field(60.0, description="... and at most [m]")
+    speed_range: NonNegativeSpan = Field((23.0, 28.0), description="initial speeds of window-placed vehicles [m/s]")
+    merger_pos: NonNegativeSpan = Field((0.0, 40.0), description="start position along the ramp's first edge [m]")
+    merger_speed: NonNegativeSpan = Field((18.0, 22.0), description="initial speed of the merging vehicle [m/s]")
+    inflow: Number = Field(0.0, ge=0, description="further HVs entering the highway start during the episode [veh/h]")
+    stream_speed: NonNegativeSpan = Field((23.0, 27.0), description="the stream's speed [m/s]")
+    stream_head: Span = Field((0.0, 80.0), description="its first vehicle, past the merge edge's start [m]")
+    stream_spacing: SpacingSpan = Field((1.0, 1.2), description="factor on each HV's equilibrium gap [-]")
+    av_speed_offset: Span = Field((-1.0, 3.0), description="AVs' initial speed minus the stream's [m/s]")
+    guide_window: Span = Field(
+        (0.0, 3.0), description="one AV's arrival at the merge edge minus the merging vehicle's (both at their "
+        "initial speeds) [s]")
+
+    @model_validator(mode="after")
+    def _ordered_window(self) -> Self:
+        if self.max_gap < self.min_gap:
+            raise _problem(f"must be >= min_gap ({self.min_gap}), got {self.max_gap}", "max_gap")
+        if self.place_to <= self.place_from:
+            raise _problem(f"must be greater than place_from ({self.place_from}), got {self.place_to}", "place_to")
+        return self
 
 
-@dataclass(frozen=True)
-class DriverConfig:
+class DriverConfig(_Section):
     """A vehicle type; HVs and the merging vehicle are driven by SUMO's models."""
 
-    accel: float = 2.6  # [m/s^2]
-    decel: float = 4.5  # [m/s^2]
-    emergency_decel: float = 9.0  # [m/s^2]
-    max_speed: float = 33.0  # [m/s]
-    length: float = 5.0  # [m]
-    width: float = 1.8  # [m]
-    min_gap: float = 2.5  # [m]
-    car_follow_model: str = "IDM"
-    lane_change_model: str = "LC2013"  # or SL2015
-    speed_factor: tuple[float, float] = (0.95, 1.1)  # [-] desired speed / speed limit, drawn per vehicle
-    # [s] per-vehicle desired time headway, drawn uniformly; IDM's T. 0.5-0.9 s: a dense stream (front-to-front
-    # about 1-1.5 s at its equilibrium gap), the low end of real motorway traffic.
-    tau_range: tuple[float, float] = (0.5, 0.9)
-    sigma_range: tuple[float, float] = (0.0, 0.3)  # [-] per-vehicle imperfection (Krauss models; IDM has none)
-    # LC2013 / SL2015 parameters, e.g. {lcCooperative: 0.2}; the default never yields to the merging vehicle.
-    lc_params: Mapping[str, float] = field(default_factory=lambda: dict(NON_YIELDING))
+    accel: Number = Field(2.6, description="[m/s^2]")
+    decel: Number = Field(4.5, description="[m/s^2]")
+    emergency_decel: Number = Field(9.0, description="[m/s^2]")
+    max_speed: Number = Field(33.0, description="[m/s]")
+    length: Number = Field(5.0, description="[m]")
+    width: Number = Field(1.8, description="[m]")
+    min_gap: Number = Field(2.5, description="[m]")
+    car_follow_model: StrictStr = Field("IDM", description="SUMO's carFollowModel")
+    lane_change_model: Literal["LC2013", "SL2015"] = Field("LC2013", description="SUMO's laneChangeModel")
+    speed_factor: NonNegativeSpan = Field(
+        (0.95, 1.1), description="desired speed / speed limit, drawn per vehicle [-]")
+    # IDM's T; 0.5-0.9 s is a dense stream (front-to-front about 1-1.5 s at its equilibrium gap), the low end of
+    # real motorway traffic.
+    tau_range: NonNegativeSpan = Field((0.5, 0.9), description="per-vehicle desired time headway, drawn uniformly [s]")
+    sigma_range: NonNegativeSpan = Field(
+        (0.0, 0.3), description="per-vehicle imperfection (Krauss models; IDM has none) [-]")
+    lc_params: NumberMap = Field(
+        default_factory=lambda: dict(NON_YIELDING),
+        description="LC2013 / SL2015 parameters, e.g. {lcCooperative: 0.2}; the default never yields to the "
+        "merging vehicle")
 
 
-@dataclass(frozen=True)
-class AVConfig:
-    accel: float = 3.0  # [m/s^2] applied by the env: SUMO's own limits are off for AVs
-    decel: float = 5.0  # [m/s^2]
-    max_speed: float = 33.0  # [m/s]
-    speed_step: float = 2.5  # [m/s] target-speed change of accelerate / decelerate
-    length: float = 5.0  # [m]
-    width: float = 1.8  # [m]
+class AVConfig(_Section):
+    accel: Number = Field(3.0, gt=0, description="applied by the env: SUMO's own limits are off for AVs [m/s^2]")
+    decel: Number = Field(5.0, gt=0, description="[m/s^2]")
+    max_speed: Number = Field(33.0, gt=0, description="[m/s]")
+    speed_step: Number = Field(2.5, gt=0, description="target-speed change of accelerate / decelerate [m/s]")
+    length: Number = Field(5.0, description="[m]")
+    width: Number = Field(1.8, description="[m]")
 
 
-@dataclass(frozen=True)
-class ObservationConfig:
-    preset: str = "default"  # one of OBSERVATION_PRESETS; the size keys below override it
-    channels: tuple[str, ...] = CHANNELS
-    frames: int | None = None  # stacked frames
-    height_px: int | None = None  # lateral pixels
-    width_px: int | None = None  # longitudinal pixels
-    length_m: float | None = None  # [m] longitudinal extent of the window
-    width_m: float | None = None  # [m] lateral extent of the window
-    ego_at: float = 0.5  # ego's longitudinal place in the window, 0 = rear edge, 1 = front edge
-    speed_scale: float = 15.0  # [m/s] relative speed that moves a pixel by 1
-    dtype: str = "float32"  # float32 | float16 | uint8
+class ObservationConfig(_Section):
+    preset: Preset = Field("default", description="one of OBSERVATION_PRESETS; the size keys below override it")
+    channels: tuple[Channel, ...] = Field(CHANNELS, description="distinct channel names, in this order")
+    # The sizes are null only until validation: a null takes the preset's value.
+    frames: Int | None = Field(None, gt=0, description="stacked frames")
+    height_px: Int | None = Field(None, gt=0, description="lateral pixels")
+    width_px: Int | None = Field(None, gt=0, description="longitudinal pixels")
+    length_m: Number | None = Field(None, gt=0, description="longitudinal extent of the window [m]")
+    width_m: Number | None = Field(None, gt=0, description="lateral extent of the window [m]")
+    ego_at: Number = Field(
+        0.5, ge=0.0, le=1.0, description="ego's longitudinal place in the window, 0 = rear edge, 1 = front edge [-]")
+    speed_scale: Number = Field(15.0, gt=0, description="relative speed that moves a pixel by 1 [m/s]")
+    dtype: Literal["float32", "float16", "uint8"] = Field("float32", description="element type of the maps")
 
-    def __post_init__(self) -> None:
-        preset = OBSERVATION_PRESETS.get(self.preset)
-        if preset is None:
-            raise ConfigError(
-                f"observation.preset: unknown preset {self.preset!r}; expected one of {sorted(OBSERVATION_PRESETS)}"
-            )
-        for key, value in preset.items():
-            if getattr(self, key) is None:
-                object.__setattr__(self, key, value)
+    @model_validator(mode="before")
+    @classmethod
+    def _preset_sizes(cls, data: Any) -> Any:
+        if not isinstance(data, Mapping):
+            return data
+        name = data.get("preset", "default")
+        preset = OBSERVATION_PRESETS.get(name) if isinstance(name, str) else None
+        if preset is None:  # the Literal reports an unknown preset
+            return data
+        return {**data, **{k: v for k, v in preset.items() if data.get(k) is None}}
+
+    @field_validator("channels")
+    @classmethod
+    def _distinct(cls, channels: tuple[str, ...]) -> tuple[str, ...]:
+        if not channels or len(set(channels)) != len(channels):
+            raise _problem(f"expected distinct names from {list(CHANNELS)}, got {list(channels)}")
+        return channels
 
 
-@dataclass(frozen=True)
-class RewardConfig:
-    # SVO angle [rad]: one value for all AVs, or one per AV. 0 egoistic, pi/4 altruistic, pi/2 fully.
-    phi: float | tuple[float, ...] = 0.0
-    # Weights of the named utility terms (cosim.environment.reward.TERMS); unlisted terms keep their default.
-    weights: Mapping[str, float] = field(default_factory=dict)
+class RewardConfig(_Section):
+    phi: Annotated[Angle | tuple[Angle, ...], WrapValidator(_angles)] = Field(
+        0.0, description="SVO angle, one for all AVs or one per AV: 0 egoistic, pi/4 altruistic, pi/2 fully [rad]")
+    weights: NumberMap = Field(
+        default_factory=dict,
+        description="weights of the named utility terms (cosim.environment.reward.TERMS); unlisted terms keep "
+        "their default")
+
+    @field_validator("weights")
+    @classmethod
+    def _known_terms(cls, weights: Mapping[str, float]) -> Mapping[str, float]:
+        unknown = sorted(set(weights) - set(TERMS))
+        if unknown:
+            raise _problem(f"unknown term; expected one of {sorted(TERMS)}", unknown[0])
+        return weights
 
     def weight(self, term: str) -> float:
         return float(self.weights.get(term, TERMS[term].weight))
 
 
-@dataclass(frozen=True)
-class Config:
-    net: NetConfig = field(default_factory=NetConfig)
-    sim: SimConfig = field(default_factory=SimConfig)
-    scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
-    hv: DriverConfig = field(default_factory=DriverConfig)
-    merger: DriverConfig = field(default_factory=lambda: DriverConfig(
+class TrainConfig(_Section):
+    """Multi-agent actor-critic hyper-parameters. A "step" is one decision period of one env.
+
+    One update: every worker plays one whole episode (seeded by the run's seed, the update and the worker);
+    the network(s) then learn from the batch: every live AV's samples with `shared_policy` (the default),
+    the learner AV's samples with per-AV networks (the paper's semi-sequential scheme). `a2c` takes one
+    gradient step per batch (the paper's algorithm), `ppo` several epochs of clipped updates over it.
+    Schedules run from the start value to the `_final` one over the run's progress: the larger of the
+    fraction of `episodes` done and, with a `budget_min`, of the budget used.
+    """
+
+    algo: Algo = Field("a2c", description="a2c: one gradient step per batch; ppo: clipped epochs over it")
+    shared_policy: StrictBool = Field(
+        True, description="one network for all AVs; false: one per AV, trained semi-sequentially")
+    workers: Int = Field(
+        4, gt=0, description="rollout worker processes, one env (one SUMO) each; more than cores is fine")
+    episodes: Int = Field(30000, gt=0, description="episodes to train for, in total over the run (resume continues)")
+    budget_min: Number = Field(
+        0.0, ge=0, description="wall-clock training time over the run (resumes included); 0: no limit [min]")
+    gamma: Number = Field(0.95, ge=0, le=1, description="discount per decision step [-]")
+    gae_lambda: Number = Field(0.95, ge=0, le=1, description="GAE lambda; 1 gives Monte-Carlo returns [-]")
+    lr: Number = Field(2.5e-4, gt=0, description="learning rate at the start [-]")
+    lr_final: Number | None = Field(
+        None, ge=0, description="learning rate at the end of the run (linear schedule); null: lr throughout [-]")
+    optimizer: OptimizerName = Field("adam", description="one of OPTIMIZER_NAMES")
+    optimizer_eps: Number = Field(1e-5, gt=0, description="epsilon of Adam / RMSprop [-]")
+    entropy_coef: Number = Field(0.01, ge=0, description="weight of the entropy bonus at the start [-]")
+    entropy_final: Number | None = Field(
+        None, ge=0, description="... at the end of the run (linear schedule); null: constant [-]")
+    value_coef: Number = Field(0.5, ge=0, description="weight of the critic's squared error in the loss [-]")
+    max_grad_norm: Number = Field(0.5, gt=0, description="global L2 norm the gradient of one step is clipped to [-]")
+    normalize_advantage: StrictBool = Field(True, description="standardise advantages over each (mini)batch")
+    value_norm: StrictBool = Field(
+        True, description="the critic learns normalised returns (running mean and std of the targets)")
+    ppo_epochs: Int = Field(4, gt=0, description="passes over each batch (ppo)")
+    ppo_minibatches: Int = Field(4, gt=0, description="minibatches per pass (ppo)")
+    clip_range: Number = Field(0.2, ge=0, le=1, description="PPO's ratio clip [-]")
+    disseminate_every: Int = Field(
+        10, gt=0, description="K: updates a learner AV trains before its weights are disseminated (per AV)")
+    checkpoint_every: Int = Field(
+        50, gt=0, description="updates between two checkpoints (one is also written at the end)")
+    log_every: Int = Field(1, gt=0, description="updates between two rows of the update log")
+    log_every_s: Number = Field(
+        30.0, ge=0, description="between two log lines when there is no terminal (no progress bar) [s]")
+    seed: Int = Field(0, description="seeds python, numpy, torch and the episodes")
+    device: StrictStr = Field("cpu", description="torch device of the learner: cpu | cuda | cuda:N")
+    precision: Precision = Field(
+        "auto", description="forward passes of training: float32, bfloat16 (autocast; weights stay float32), or "
+        "auto: bfloat16 where the hardware has it (CPUs with AMX / AVX512-BF16, GPUs that support it), else float32")
+    feature_dim: Int = Field(512, gt=0, description="units of the feature extractor's FC layer (paper: 512)")
+    head_hidden: Int = Field(256, gt=0, description="units of the actor's and critic's hidden FC layer (paper: 256)")
+    max_restarts: Int = Field(100, ge=0, description="worker restarts tolerated over a run before it is stopped")
+    step_timeout: Number = Field(
+        60.0, gt=0, description="a worker silent this long is killed and restarted like a crashed one [s]")
+    torch_threads: Int = Field(0, ge=0, description="torch intra-op threads of the learner; 0 keeps torch's default")
+
+    @field_validator("device")
+    @classmethod
+    def _known_device(cls, device: str) -> str:
+        problem = _device_problem(device)
+        if problem:
+            raise _problem(problem)
+        return device
+
+
+class EvaluateConfig(_Section):
+    """The `evaluate:` section (all optional; command-line flags override)."""
+
+    episodes: Int = Field(100, ge=1, description="evaluation episodes")
+    seed: Int = Field(EVAL_SEED_START, description="first evaluation seed; training seeds stay below it")
+    greedy: StrictBool = Field(True, description="argmax actions; false: sampled from the policy")
+    trajectories: Int = Field(3, ge=0, description="first episodes whose per-step trajectories are kept for plots")
+    workers: Int = Field(1, ge=1, description="worker processes")
+    confidence: Number = Field(0.95, gt=0, lt=1, description="of the intervals in the summary [-]")
+
+
+class Config(_Section):
+    net: NetConfig = Field(default_factory=NetConfig)
+    sim: SimConfig = Field(default_factory=SimConfig)
+    scenario: ScenarioConfig = Field(default_factory=ScenarioConfig)
+    hv: DriverConfig = Field(default_factory=DriverConfig)
+    # A merger section given in a file starts from DriverConfig's defaults, not from these.
+    merger: DriverConfig = Field(default_factory=lambda: DriverConfig(
         max_speed=30.0, tau_range=(1.0, 1.0), sigma_range=(0.0, 0.0), speed_factor=(1.0, 1.0), lc_params={}))
-    av: AVConfig = field(default_factory=AVConfig)
-    observation: ObservationConfig = field(default_factory=ObservationConfig)
-    reward: RewardConfig = field(default_factory=RewardConfig)
-    # Sections owned by later stages (trainer, evaluation): kept as validated-by-them mappings.
-    train: Mapping[str, Any] = field(default_factory=dict)
-    evaluate: Mapping[str, Any] = field(default_factory=dict)
-    source: str | None = None  # the YAML file this came from, if any
+    av: AVConfig = Field(default_factory=AVConfig)
+    observation: ObservationConfig = Field(default_factory=ObservationConfig)
+    reward: RewardConfig = Field(default_factory=RewardConfig)
+    train: TrainConfig = Field(default_factory=TrainConfig)
+    evaluate: EvaluateConfig = Field(default_factory=EvaluateConfig)
+    source: StrictStr | None = Field(None, exclude=True, description="the YAML file this came from, if any")
+
+    @model_validator(mode="after")
+    def _one_angle_per_av(self) -> Self:
+        phi = self.reward.phi
+        if isinstance(phi, tuple) and len(phi) != self.scenario.n_avs:
+            raise _problem(f"a list needs one angle per AV ({self.scenario.n_avs}), got {len(phi)}", "reward.phi")
+        return self
 
     @property
     def steps_per_decision(self) -> int:
@@ -201,20 +462,27 @@ class Config:
         return tuple(phi) if isinstance(phi, tuple) else (float(phi),) * self.scenario.n_avs
 
     def to_dict(self) -> dict[str, Any]:
-        """A plain dict that `load_config` turns back into an equal config (paths stay resolved)."""
-        out = _plain(self)  # not dataclasses.asdict: it deep-copies, and read-only mappings cannot be copied
-        out.pop("source")
+        """A plain dict (YAML- and JSON-ready) that `load_config` turns back into an equal config (paths stay
+        resolved). `train` and `evaluate` hold only the keys that were given: what config hashes and a resumed
+        run's config comparison saw before these sections were typed (a run's config.yaml writes its whole
+        `train` section itself)."""
+        out = self.model_dump(mode="json")
+        for name in ("train", "evaluate"):
+            out[name] = getattr(self, name).model_dump(mode="json", exclude_unset=True)
         return out
 
 
-def _plain(value: Any) -> Any:
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, Mapping):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_plain(v) for v in value]
-    return value
+_T = TypeVar("_T")
+
+
+def parse_section(cls: type[_T], data: Any, where: str) -> _T:
+    """Validate one section (a mapping; None: all defaults; an instance passes) into the model `cls`; problems
+    raise `ConfigError` naming `where.key`."""
+    if isinstance(data, cls):
+        return data
+    if not issubclass(cls, _Section):
+        raise TypeError(f"parse_section: {cls!r} is not a config section model")
+    return cls.model_validate({} if data is None else data, context={"where": where})
 
 
 def load_config(
@@ -234,17 +502,17 @@ def load_config(
         data, source = _read_yaml(path), str(path)
     for key, value in _parse_overrides(overrides).items():
         _set_dotted(data, key, value)
-    cfg = _build(Config, data, "")
-    net = cfg.net
-    # Paths from overrides or dicts are relative to the working directory, as on a command line.
-    net = dataclasses.replace(
-        net,
-        file=str(_resolve(net.file, Path.cwd())),
-        description=None if net.description is None else str(_resolve(net.description, Path.cwd())),
-    )
-    cfg = dataclasses.replace(cfg, net=net, source=source)
-    validate(cfg)
-    return cfg
+    data["source"] = source
+    return Config.model_validate(data, context={"source": source})
+
+
+def _plain(value: Any) -> Any:
+    """A copy of nested mappings and sequences as dicts and lists, which overrides can then be set in."""
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    return value
 
 
 def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
@@ -303,6 +571,8 @@ def _parse_overrides(overrides: Mapping[str, Any] | Sequence[str] | None) -> dic
 
 
 def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
+    """Put an override into the raw dict. It replaces its key whole: `hv.lc_params={}` empties the mapping,
+    where a `base:` file's mapping is merged into key by key."""
     node = data
     *parents, leaf = key.split(".")
     for i, part in enumerate(parents):
@@ -313,172 +583,71 @@ def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
     node[leaf] = value
 
 
-def parse_section(cls: type, data: Any, where: str) -> Any:
-    """Validate a mapping into the frozen dataclass `cls`: unknown keys and wrong types are `ConfigError`s
-    naming `where.key`. Later stages (trainer, evaluation) validate their own config sections with it."""
-    return _build(cls, data if data is not None else {}, where)
+# How a problem's message words what pydantic's error type asks for.
+_EXPECTED = {
+    "int_type": "an integer", "int_parsing": "an integer", "int_from_float": "an integer",
+    "float_type": "a number", "float_parsing": "a number", "finite_number": "a finite number",
+    "bool_type": "true or false", "bool_parsing": "true or false", "string_type": "a string",
+    "tuple_type": "a list", "list_type": "a list", "dict_type": "a mapping", "mapping_type": "a mapping",
+    "model_type": "a mapping", "model_attributes_type": "a mapping",
+}
+_BOUNDS = {"greater_than": (">", "gt"), "greater_than_equal": (">=", "ge"),
+           "less_than": ("<", "lt"), "less_than_equal": ("<=", "le")}
 
 
-def _build(cls: type, data: Any, where: str) -> Any:
-    if not isinstance(data, Mapping):
-        raise ConfigError(f"{where or 'config'}: expected a mapping, got {type(data).__name__}")
-    hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
-    unknown = set(data) - set(fields) - {"source"}
-    if unknown:
-        name = sorted(unknown)[0]
-        raise ConfigError(
-            f"config key {where + '.' if where else ''}{name}: unknown; expected one of {sorted(fields)}"
-        )
-    kwargs = {}
-    for name, value in data.items():
-        if name == "source":
-            continue
-        kwargs[name] = _coerce(hints[name], value, f"{where + '.' if where else ''}{name}")
-    try:
-        return cls(**kwargs)
-    except TypeError as exc:  # pragma: no cover - dataclass signature mismatch is a bug
-        raise ConfigError(f"{where or 'config'}: {exc}") from None
+def _error(exc: ValidationError, root: type[BaseModel], where: str, source: str | None = None) -> ConfigError:
+    """One line per problem, naming the dotted key below `where` (and the file `source`, if any)."""
+    lines = []
+    for err in exc.errors(include_url=False):
+        loc, kind, ctx = list(err["loc"]), err["type"], err.get("ctx") or {}
+        value = err.get("input")
+        got, prefix = _show(value), ""
+        if kind == "cosim":
+            if ctx.get("key"):
+                loc.append(ctx["key"])
+            text = ctx["message"]
+        elif kind == "extra_forbidden":
+            allowed = _keys_at(root, loc[:-1])
+            prefix, text = "config key ", "unknown key" + (f"; allowed: {', '.join(allowed)}" if allowed else "")
+        elif isinstance(value, float) and not math.isfinite(value):  # pydantic checks bounds first
+            text = f"expected a finite number, got {got}"
+        elif kind in _BOUNDS:
+            op, bound = _BOUNDS[kind]
+            text = f"must be {op} {_number(ctx[bound])}, got {got}"
+        elif kind == "literal_error":
+            text = f"expected {ctx['expected']}, got {got}"
+        elif kind in _EXPECTED:
+            text = f"expected {_EXPECTED[kind]}, got {got}"
+        else:
+            text = f"{err['msg']}, got {got}"
+        line = f"{prefix}{_dotted(where, loc) or 'config'}: {text}"
+        lines.append(f"{source}: {line}" if source else line)
+    return ConfigError("\n".join(dict.fromkeys(lines)))
 
 
-def _coerce(tp: Any, value: Any, where: str) -> Any:
-    origin = typing.get_origin(tp)
-    if dataclasses.is_dataclass(tp):
-        return _build(tp, value, where)
-    if origin in (typing.Union, types.UnionType):
-        options = typing.get_args(tp)
-        if value is None and type(None) in options:
-            return None
-        for option in options:
-            if option is type(None):
-                continue
-            try:
-                return _coerce(option, value, where)
-            except ConfigError:
-                pass
-        allowed = " or ".join(_describe(o) for o in options)
-        raise ConfigError(f"{where}: expected {allowed}, got {value!r}")
-    if origin is tuple:
-        args = typing.get_args(tp)
-        if not isinstance(value, list | tuple):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
-        if len(args) == 2 and args[1] is Ellipsis:
-            return tuple(_coerce(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
-        if len(value) != len(args):
-            raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
-        return tuple(_coerce(a, v, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value, strict=True)))
-    if origin in (Mapping, dict) or tp is Mapping:
-        if not isinstance(value, Mapping):
-            raise ConfigError(f"{where}: expected a mapping, got {value!r}")
-        args = typing.get_args(tp)
-        vt = args[1] if args else Any
-        return types.MappingProxyType({str(k): _coerce(vt, v, f"{where}.{k}") for k, v in value.items()})
-    if tp is Any:
-        return value
-    if tp is float:
-        if isinstance(value, str):  # YAML 1.1 reads 1e-4 (no dot) as a string
-            try:
-                value = float(value)
-            except ValueError:
-                raise ConfigError(f"{where}: expected a number, got {value!r}") from None
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
-        return float(value)
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise ConfigError(f"{where}: expected true or false, got {value!r}")
-        return value
-    if tp is str:
-        if not isinstance(value, str):
-            raise ConfigError(f"{where}: expected a string, got {value!r}")
-        return value
-    raise ConfigError(f"{where}: unsupported type {tp}")  # pragma: no cover
+def _dotted(where: str, loc: Sequence[str | int]) -> str:
+    path = where
+    for part in loc:
+        path += f"[{part}]" if isinstance(part, int) else f"{'.' if path else ''}{part}"
+    return path
 
 
-def _describe(tp: Any) -> str:
-    """How an error message names a type: 'a number', 'a list of numbers', 'null'."""
-    if tp is type(None):
-        return "null"
-    if typing.get_origin(tp) is tuple:
-        return f"a list of {_describe(typing.get_args(tp)[0]).removeprefix('a ').removeprefix('an ')}s"
-    return {float: "a number", int: "an integer", bool: "true or false", str: "a string"}.get(tp, "a mapping")
+def _keys_at(root: type[BaseModel], loc: Sequence[str | int]) -> list[str]:
+    """The keys of the section at `loc` below `root` (none where `loc` leads to no section model)."""
+    model: Any = root
+    for part in loc:
+        field = model.model_fields.get(part) if isinstance(part, str) else None
+        model = field.annotation if field is not None else None
+        if not (isinstance(model, type) and issubclass(model, BaseModel)):
+            return []
+    return [k for k in model.model_fields if k != "source"]
 
 
-def validate(cfg: Config) -> None:
-    """Cross-field checks that a single field's type cannot express."""
-    sc, sim, obs = cfg.scenario, cfg.sim, cfg.observation
+def _number(bound: Any) -> str:
+    # A bound on a float field comes back as a float: "> 0", not "> 0.0".
+    return f"{bound:g}" if isinstance(bound, float) else str(bound)
 
-    def positive(where: str, value: float, strict: bool = True) -> None:
-        if value < 0 or (strict and value == 0):
-            raise ConfigError(f"{where}: must be {'> 0' if strict else '>= 0'}, got {value}")
 
-    positive("scenario.n_avs", sc.n_avs)
-    positive("scenario.n_hvs", sc.n_hvs, strict=False)
-    positive("scenario.inflow", sc.inflow, strict=False)
-    positive("scenario.min_gap", sc.min_gap)
-    positive("sim.step_length", sim.step_length)
-    positive("sim.decision_period", sim.decision_period)
-    positive("sim.horizon", sim.horizon)
-    positive("sim.detector_offset", sim.detector_offset, strict=False)
-    positive("sim.cut_in_window", sim.cut_in_window, strict=False)
-    if sim.on_collision not in ON_COLLISION:
-        raise ConfigError(f"sim.on_collision: expected one of {list(ON_COLLISION)}, got {sim.on_collision!r}")
-    if sc.placement not in PLACEMENTS:
-        raise ConfigError(f"scenario.placement: expected one of {list(PLACEMENTS)}, got {sc.placement!r}")
-    if sim.av_driver not in AV_DRIVERS:
-        raise ConfigError(f"sim.av_driver: expected one of {list(AV_DRIVERS)}, got {sim.av_driver!r}")
-    if sim.decision_period < sim.step_length:
-        raise ConfigError("sim.decision_period: must be at least sim.step_length")
-    steps = sim.decision_period / sim.step_length
-    if abs(steps - round(steps)) > 1e-6:
-        raise ConfigError(f"sim.decision_period: must be a whole number of SUMO steps (sim.step_length = "
-                          f"{sim.step_length} s), got {sim.decision_period} s = {steps:.3g} steps")
-    if sc.max_gap < sc.min_gap:
-        raise ConfigError(f"scenario.max_gap: must be >= scenario.min_gap ({sc.min_gap}), got {sc.max_gap}")
-    if sc.place_to <= sc.place_from:
-        raise ConfigError("scenario.place_to: must be greater than scenario.place_from")
-    for name in ("speed_range", "merger_speed", "merger_pos", "stream_speed", "stream_spacing"):
-        lo, hi = getattr(sc, name)
-        if not 0 <= lo <= hi:
-            raise ConfigError(f"scenario.{name}: expected [low, high] with 0 <= low <= high, got {[lo, hi]}")
-    for name in ("stream_head", "av_speed_offset", "guide_window"):
-        lo, hi = getattr(sc, name)
-        if not lo <= hi:
-            raise ConfigError(f"scenario.{name}: expected [low, high] with low <= high, got {[lo, hi]}")
-    if sc.stream_spacing[0] < 1.0:
-        raise ConfigError(f"scenario.stream_spacing: expected factors >= 1 (below the equilibrium gap the "
-                          f"stream brakes at once), got {list(sc.stream_spacing)}")
-    for section in ("hv", "merger"):
-        drv: DriverConfig = getattr(cfg, section)
-        for name in ("tau_range", "sigma_range", "speed_factor"):
-            lo, hi = getattr(drv, name)
-            if not 0 <= lo <= hi:
-                raise ConfigError(f"{section}.{name}: expected [low, high] with 0 <= low <= high")
-        if drv.lane_change_model not in ("LC2013", "SL2015"):
-            raise ConfigError(f"{section}.lane_change_model: expected LC2013 or SL2015, got "
-                              f"{drv.lane_change_model!r}")
-    for name in ("accel", "decel", "max_speed", "speed_step"):
-        positive(f"av.{name}", getattr(cfg.av, name))
-    for name in ("frames", "height_px", "width_px", "length_m", "width_m", "speed_scale"):
-        positive(f"observation.{name}", getattr(obs, name))
-    if not 0.0 <= obs.ego_at <= 1.0:
-        raise ConfigError(f"observation.ego_at: must be within [0, 1], got {obs.ego_at}")
-    bad = [c for c in obs.channels if c not in CHANNELS]
-    if bad or not obs.channels or len(set(obs.channels)) != len(obs.channels):
-        raise ConfigError(f"observation.channels: expected distinct names from {list(CHANNELS)}, got "
-                          f"{list(obs.channels)}")
-    if obs.dtype not in ("float32", "float16", "uint8"):
-        raise ConfigError(f"observation.dtype: expected float32, float16 or uint8, got {obs.dtype!r}")
-    unknown_terms = sorted(set(cfg.reward.weights) - set(TERMS))
-    if unknown_terms:
-        raise ConfigError(f"reward.weights.{unknown_terms[0]}: unknown term; expected one of {sorted(TERMS)}")
-    phis = cfg.reward.phi
-    if isinstance(phis, tuple) and len(phis) != sc.n_avs:
-        raise ConfigError(f"reward.phi: a list needs one angle per AV ({sc.n_avs}), got {len(phis)}")
-    for phi in phis if isinstance(phis, tuple) else (phis,):
-        if not -math.pi <= phi <= math.pi:
-            raise ConfigError(f"reward.phi: expected an angle in radians within [-pi, pi], got {phi}")
+def _show(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."

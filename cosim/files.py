@@ -6,6 +6,9 @@ of the user gets (the umask's, not mkstemp's private 0600); `atomic_write_text` 
 `stale_temporaries(folder, name)` lists what an interrupted atomic write of `name` left behind. `AppendCsv`
 appends rows flushed one by one, keeps an existing file's header (a row with a new key widens it; a missing
 key is an empty cell), and drops a half-written last line left by an interrupted run, so runs can resume.
+The project's CSV tables go through here only: `read_csv(path)` (complete rows as dicts of strings; none for a
+missing file), `write_csv(path, rows, fields)` (atomic), `AppendCsv`, and `column(rows, name)`, a column as
+floats (booleans as 0/1, empty or unparsable cells as NaN).
 """
 
 from __future__ import annotations
@@ -14,10 +17,12 @@ import csv
 import io
 import os
 import tempfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 
 def _umask() -> int:
@@ -53,6 +58,47 @@ def stale_temporaries(folder: Path, name: str) -> list[Path]:
     return sorted(p for p in folder.glob(f".{stem}.*{suffix}") if p.is_file())
 
 
+def read_csv(path: Path) -> list[dict[str, str]]:
+    """The complete rows of a CSV file with a header; a half-written last row (an interrupted run) is dropped."""
+    if not Path(path).is_file():
+        return []
+    with Path(path).open(newline="") as f:
+        return [r for r in csv.DictReader(f) if None not in r.values() and None not in r]
+
+
+def write_csv(path: Path, rows: Sequence[Mapping[str, Any]], fields: Sequence[str] | None = None) -> None:
+    """Write `rows` under the header `fields` (default: the keys in order of first appearance), atomically."""
+    fields = list(fields) if fields is not None else list(dict.fromkeys(k for r in rows for k in r))
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=fields)
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_text(Path(path), buf.getvalue())
+
+
+def cell_float(value: Any) -> float:
+    """A CSV cell or a Python value as a float: booleans as 0/1, empty or unparsable as NaN."""
+    if isinstance(value, bool | np.bool_):
+        return float(value)
+    if isinstance(value, str):
+        v = value.strip().lower()
+        if v in ("true", "false"):
+            return float(v == "true")
+        try:
+            return float(v) if v else float("nan")
+        except ValueError:
+            return float("nan")
+    try:
+        return float("nan") if value is None else float(value)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
+def column(rows: Sequence[Mapping[str, Any]], name: str) -> np.ndarray:
+    """(len(rows),) float64: one column, NaN where a row has no usable value."""
+    return np.array([cell_float(r.get(name)) for r in rows], dtype=np.float64)
+
+
 class AppendCsv:
     def __init__(self, path: Path) -> None:
         self.path = path
@@ -70,14 +116,8 @@ class AppendCsv:
             self.fields = list(row)
         extra = [k for k in row if k not in self.fields]
         if extra:  # a new column widens the file (earlier rows get empty cells): no value is dropped
-            with self.path.open(newline="") as f:
-                rows = list(csv.DictReader(f))
             self.fields += extra
-            buf = io.StringIO()
-            widened = csv.DictWriter(buf, fieldnames=self.fields)
-            widened.writeheader()
-            widened.writerows(rows)
-            atomic_write_text(self.path, buf.getvalue())
+            write_csv(self.path, read_csv(self.path), self.fields)
         with self.path.open("a", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=self.fields)
             if new:

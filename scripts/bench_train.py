@@ -30,7 +30,7 @@ from agents.model import ActorCritic
 from agents.rollout import BACKENDS
 from agents.train import train
 from cosim.config import OBSERVATION_PRESETS, load_config
-from cosim.evaluation.runner import read_rows
+from cosim.files import read_csv
 
 log = logging.getLogger("bench_train")
 
@@ -44,7 +44,7 @@ def bench_workers(args: argparse.Namespace, algo: str, preset: str) -> list[dict
             res = train(cfg, Path(tmp) / "run", workers=workers, budget_min=args.seconds / 60.0, device=args.device,
                         progress=False, backend=backend)
             # How far it learnt in that time: the crash rate of its last 100 training episodes (sampled actions).
-            last = [float(r["crashed"]) for r in read_rows(Path(tmp) / "run" / "episodes.csv")[-100:]]
+            last = [float(r["crashed"]) for r in read_csv(Path(tmp) / "run" / "episodes.csv")[-100:]]
         busy = res.rollout_s + res.update_s
         rows.append({"algo": algo, "preset": preset, "backend": backend, "workers": workers, "episodes": res.episodes,
                      "updates": res.updates, "samples": res.new_samples, "wall_s": round(res.wall_s, 1),

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from cosim.config import EVAL_SEED_START, load_config
 from cosim.errors import CosimError
-from cosim.evaluation.runner import PolicySpec, evaluate
+from cosim.evaluation.runner import Baseline, evaluate
 from cosim.evaluation.stats import format_table
 from cosim.files import atomic_write_text
 
@@ -59,7 +59,7 @@ def main() -> None:
     summaries, walls = {}, {}
     for name in args.policies:
         t0 = time.perf_counter()
-        summaries[name] = evaluate(cfg, PolicySpec(name), args.out / name, episodes=args.episodes, seed=args.seed,
+        summaries[name] = evaluate(cfg, Baseline(name), args.out / name, episodes=args.episodes, seed=args.seed,
                                    workers=args.workers, trajectories=0, plots=False)
         walls[name] = time.perf_counter() - t0
         log.info("%s: %d episodes in %.0f s", name, summaries[name]["episodes"], walls[name])

@@ -80,11 +80,13 @@ def main() -> int:
         path = train_sb3(config, args.out, args.steps, args.envs, args.seed)
         log.info("trained %d agent-steps in %.0f s into %s", args.steps, time.perf_counter() - t0, path)
         if args.eval_episodes:
-            from cosim.evaluation.runner import PolicySpec, evaluate, print_summary
+            from agents.sb3 import Sb3Policy
+            from cosim.evaluation.runner import evaluate
+            from cosim.evaluation.stats import format_table
 
-            summary = evaluate(config, PolicySpec("sb3", str(path.resolve())), args.out / "eval",
+            summary = evaluate(config, Sb3Policy(str(path.resolve())), args.out / "eval",
                                episodes=args.eval_episodes, workers=args.eval_workers, plots=False)
-            print_summary(summary, "sb3")
+            print(format_table({"sb3": summary["metrics"]}, {"sb3": summary["episodes"]}))
     except CosimError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -20,7 +20,6 @@ lane i+1 of hw_merge and lane i of hw_out, and the ramp's centre line ends on hw
 
 from __future__ import annotations
 
-import argparse
 import logging
 import math
 import os
@@ -204,38 +203,3 @@ def _description_yaml(g: MergeGeometry) -> str:
         "merge_edge: hw_merge\n"
         "accel_lanes: [0]\n"
     )
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    """`cosim build-net` flags."""
-    d = MergeGeometry()
-    p.add_argument("--lanes", type=int, default=d.lanes, help="through lanes of the highway")
-    p.add_argument("--upstream-length", type=float, default=d.upstream_length, help="[m] before the merge")
-    p.add_argument("--accel-length", type=float, default=d.accel_length, help="[m] acceleration lane")
-    p.add_argument("--ramp-length", type=float, default=d.ramp_length, help="[m] on-ramp")
-    p.add_argument("--downstream-length", type=float, default=d.downstream_length, help="[m] after the merge")
-    p.add_argument("--highway-speed", type=float, default=d.highway_speed, help="[m/s] highway speed limit")
-    p.add_argument("--ramp-speed", type=float, default=d.ramp_speed, help="[m/s] ramp speed limit")
-    p.add_argument("--lane-width", type=float, default=d.lane_width, help="[m]")
-    p.add_argument("--name", default=d.name, help="file stem of the outputs")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
-
-
-def run(args: argparse.Namespace) -> int:
-    """`cosim build-net`: build a merge net from command-line flags; return the exit status."""
-    net_file = build_merge_net(
-        args.out, lanes=args.lanes, upstream_length=args.upstream_length, accel_length=args.accel_length,
-        ramp_length=args.ramp_length, downstream_length=args.downstream_length,
-        highway_speed=args.highway_speed, ramp_speed=args.ramp_speed, lane_width=args.lane_width,
-        name=args.name,
-    )
-    log.info("wrote %s and %s", net_file, net_file.with_name(f"{args.name}.yaml"))
-    return 0
-
-
-if __name__ == "__main__":
-    import sys
-
-    from cosim.cli import main
-
-    raise SystemExit(main(["build-net", *sys.argv[1:]]))

@@ -13,7 +13,9 @@ import pytest
 from agents.checkpoint import read_checkpoint
 from cosim.cli import main
 from cosim.config import EVAL_SEED_START
-from cosim.evaluation.runner import read_rows
+from cosim.files import read_csv
+
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -35,7 +37,7 @@ def test_readme_main_job_trains_then_evaluates_the_trained_run(tmp_path: Path,
     monkeypatch.chdir(ROOT)
 
     assert main(train_args) == 0
-    trained = read_rows(run / "episodes.csv")
+    trained = read_csv(run / "episodes.csv")
     assert len(trained) == 16  # train.episodes of the smoke config, no more
     assert all(int(r["seed"]) < EVAL_SEED_START for r in trained)
     updates = read_checkpoint(run / "checkpoint.pt")["counters"]["updates"]
@@ -44,7 +46,7 @@ def test_readme_main_job_trains_then_evaluates_the_trained_run(tmp_path: Path,
     assert main(eval_args) == 0
     summary = json.loads((run / "eval" / "summary.json").read_text())
     assert summary["policy"] == "checkpoint" and summary["trained_updates"] == updates  # the trained state
-    evaluated = read_rows(run / "eval" / "episodes.csv")
+    evaluated = read_csv(run / "eval" / "episodes.csv")
     assert [int(r["seed"]) for r in evaluated] == [EVAL_SEED_START + i for i in range(3)]
     crashed = [r["crashed"] == "True" for r in evaluated]
     assert summary["episodes"] == 3

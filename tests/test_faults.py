@@ -17,6 +17,8 @@ import torch
 
 from agents.checkpoint import read_checkpoint
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
+
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = str(ROOT / "configs" / "smoke.yaml")
 
@@ -205,13 +207,13 @@ def test_ctrl_c_during_a_two_worker_evaluation_exits_130_cleanly(tmp_path: Path)
 @pytest.mark.slow
 def test_memory_stays_flat_over_2000_evaluation_episodes(tmp_path: Path) -> None:
     from cosim.config import load_config
-    from cosim.evaluation.runner import PolicySpec, evaluate
+    from cosim.evaluation.runner import Baseline, evaluate
 
     def rss_mib() -> float:
         return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
     cfg = load_config(SMOKE)
-    evaluate(cfg, PolicySpec("idle"), tmp_path / "eval", episodes=200, trajectories=0, plots=False)
+    evaluate(cfg, Baseline("idle"), tmp_path / "eval", episodes=200, trajectories=0, plots=False)
     warm = rss_mib()
-    evaluate(cfg, PolicySpec("idle"), tmp_path / "eval", episodes=2000, trajectories=0, plots=False)  # resumes
+    evaluate(cfg, Baseline("idle"), tmp_path / "eval", episodes=2000, trajectories=0, plots=False)  # resumes
     assert rss_mib() - warm < 50.0, (warm, rss_mib())

@@ -1,8 +1,9 @@
 """`render_mode="rgb_array"`: a top view of the scene above the first live agent's newest VelocityMap frame.
 
 Contract: `render_scene(road, snap, mapper, cfg, agent)` returns an (H, W, 3) uint8 image; it reads only the
-snapshot, the road raster and the mapper's stacks. Colours: road grey, AVs green, HVs blue, merging
-vehicle purple; in the VelocityMap panel brightness is the pixel value.
+snapshot, the road raster and the mapper's stacks. `top_view` draws the road and the vehicles; the
+snapshot, the road raster and the mapper's stacks. `top_view` draws the road and the vehicles; the evaluation's
+top-view figures (`cosim.evaluation.plots.top_views`) draw through it too.
 """
 
 from __future__ import annotations
@@ -33,36 +34,48 @@ def render_scene(road: RoadRaster, snap: Snapshot, mapper: VelocityMapper, cfg: 
 
 
 def _top_view(road: RoadRaster, snap: Snapshot, margin: float = 25.0, min_length: float = 250.0) -> np.ndarray:
-    """The road around the vehicles at SCENE_RES (at least `min_length` [m] long), vehicles as footprint
-    rectangles, +y up."""
-    step = max(1, round(SCENE_RES / road.resolution))
-    grid = road.grid[::step, ::step] != 0
-    res = road.resolution * step
+    """The road around the vehicles (at least `min_length` [m] long)."""
+    x_range = None
     if len(snap):  # crop to the vehicles, so that they are not specks on a kilometre of road
         x0, x1 = snap.x.min() - margin, snap.x.max() + margin
         pad = max(0.0, min_length - (x1 - x0)) / 2
-        j0 = max(0, int((x0 - pad - road.origin[0]) / res))
-        j1 = min(grid.shape[1], int((x1 + pad - road.origin[0]) / res) + 1)
+        x_range = (x0 - pad, x1 + pad)
+    colours = np.array([COLOURS.get(int(k), COLOURS[KIND_HV]) for k in snap.kind], dtype=np.uint8).reshape(-1, 3)
+    return top_view(road, snap.x, snap.y, snap.heading, snap.length, snap.width, colours, x_range)[0]
+
+
+def top_view(road: RoadRaster, x: np.ndarray, y: np.ndarray, heading: np.ndarray, length: np.ndarray,
+             width: np.ndarray, colours: np.ndarray, x_range: tuple[float, float] | None = None
+             ) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """The one top-view renderer (the env's `render` and the evaluation's top-view figures): the road at
+    SCENE_RES between `x_range` [m] (all of it by default), cropped to the road's rows there, vehicles (V,)
+    as footprint rectangles of their `colours` (V, 3) uint8. Returns the (H, W, 3) uint8 image, +y up, and its
+    extent (x0, x1, y0, y1) [m] in network coordinates."""
+    step = max(1, round(SCENE_RES / road.resolution))
+    grid = road.grid[::step, ::step] != 0
+    res = road.resolution * step
+    ox, oy = road.origin
+    if x_range is not None:
+        j0 = max(0, int((x_range[0] - ox) / res))
+        j1 = min(grid.shape[1], int((x_range[1] - ox) / res) + 1)
         rows = np.flatnonzero(grid[:, j0:j1].any(axis=1))
         i0, i1 = (max(0, rows[0] - 4), rows[-1] + 5) if rows.size else (0, grid.shape[0])
         grid = grid[i0:i1, j0:j1]
-        road = RoadRaster(grid, (road.origin[0] + j0 * res, road.origin[1] + i0 * res), res)
+        ox, oy = ox + j0 * res, oy + i0 * res
     img = np.empty(grid.shape + (3,), dtype=np.uint8)
     img[:] = BACKGROUND
     img[grid] = ROAD
     ny, nx = grid.shape
-    for k in range(len(snap)):
-        c, s = np.cos(snap.heading[k]), np.sin(snap.heading[k])
-        along = np.arange(-snap.length[k] / 2, snap.length[k] / 2 + 1e-9, res / 2)
-        across = np.arange(-snap.width[k] / 2, snap.width[k] / 2 + 1e-9, res / 2)
+    for k in range(len(x)):
+        c, s = np.cos(heading[k]), np.sin(heading[k])
+        along = np.arange(-length[k] / 2, length[k] / 2 + 1e-9, res / 2)
+        across = np.arange(-width[k] / 2, width[k] / 2 + 1e-9, res / 2)
         a, b = np.meshgrid(along, across)
-        px = snap.x[k] + a * c - b * s
-        py = snap.y[k] + a * s + b * c
-        j = ((px - road.origin[0]) / res).astype(int)
-        i = ((py - road.origin[1]) / res).astype(int)
+        j = ((x[k] + a * c - b * s - ox) / res).astype(int)
+        i = ((y[k] + a * s + b * c - oy) / res).astype(int)
         ok = (i >= 0) & (i < ny) & (j >= 0) & (j < nx)
-        img[i[ok], j[ok]] = COLOURS.get(int(snap.kind[k]), COLOURS[KIND_HV])
-    return img[::-1]
+        img[i[ok], j[ok]] = colours[k]
+    return img[::-1], (ox, ox + nx * res, oy, oy + ny * res)
 
 
 def _velocity_map_panel(mapper: VelocityMapper, cfg: ObservationConfig, agent: int) -> np.ndarray:

@@ -14,76 +14,21 @@ left out. `plot_run(eval_dir, plots_dir, label, rows)` draws one evaluation's ow
 
 from __future__ import annotations
 
-import argparse
-import csv
-import io
 import json
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from tqdm import tqdm
 
-from cosim.config import load_config
 from cosim.errors import CosimError
 from cosim.evaluation import plots
-from cosim.evaluation.runner import load_trajectory, summarize_evaluation, trajectory_files
 from cosim.evaluation.stats import SUMMARY_METRICS, format_table
-from cosim.files import atomic_write_text
-from cosim.sumo.roadnet import load_roadnet
+from cosim.evaluation.store import Evaluation, find_evaluation, summarize_evaluation
+from cosim.files import atomic_write_text, column, write_csv
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Evaluation:
-    label: str
-    eval_dir: Path
-    run_dir: Path | None  # the training run, for its training log
-    summary: dict[str, Any]
-
-
-def find_evaluation(path: Path, label: str | None = None) -> Evaluation:
-    """An evaluation folder, or a run folder with one in `eval/`."""
-    path = Path(path)
-    for eval_dir in (path, path / "eval"):
-        if (eval_dir / "summary.json").is_file():
-            summary = json.loads((eval_dir / "summary.json").read_text())
-            run = summary.get("run") or (str(path) if eval_dir != path else None)
-            return Evaluation(label or path.name, eval_dir, None if run is None else Path(run), summary)
-    raise CosimError(f"{path}: no evaluation found (summary.json here or in {path / 'eval'}); run "
-                     f"`cosim evaluate --out {path}` (or `--run {path}`) first")
-
-
-def plot_run(eval_dir: Path, plots_dir: Path, label: str, rows: Sequence[dict[str, str]] | None = None) -> list[Path]:
-    """One evaluation's figures: the merger distance histogram over `rows` (none without them), and per
-    recorded episode a time-space diagram with the guide AV's speed profile and top views around the merge."""
-    out = [plots.distance_histogram({label: _column(rows, "merger_distance")},
-                                    plots_dir / "merger_distance.png")] if rows is not None else []
-    files = trajectory_files(eval_dir)
-    if files:
-        cfg = load_config(eval_dir / "config.yaml")
-        lanes = load_roadnet(cfg.net.file).lane_shapes()
-        for f in files:
-            traj = load_trajectory(f)
-            seed = f.stem.split("_")[1]
-            out.append(plots.time_space(traj, plots_dir / f"timespace_seed_{seed}.png",
-                                        title=f"{label}: episode seed {seed}, guide AV {traj['guide']}"))
-            out.append(plots.top_views(traj, lanes, plots_dir / f"topview_seed_{seed}.png",
-                                       title=f"{label}: episode seed {seed}"))
-    return out
-
-
-def _column(rows: Sequence[dict[str, str]], name: str) -> list[float]:
-    values = []
-    for r in rows:
-        try:
-            values.append(float(r.get(name) or "nan"))
-        except ValueError:
-            values.append(float("nan"))
-    return values
 
 
 def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = None) -> dict[str, Any]:
@@ -106,7 +51,7 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
             e.eval_dir, int(e.summary["first_seed"]), int(e.summary.get("requested_episodes", e.summary["episodes"])),
             e.summary.get("confidence", 0.95))
     episodes = {e.label: len(rows[e.label]) for e in evals}
-    merger = {label: _column(r, "merger_distance") for label, r in rows.items()}
+    merger = {label: column(r, "merger_distance") for label, r in rows.items()}
     figures = {"bars": plots.bars(metrics, out_dir / "bars.png"),
                "merger distance": plots.distance_histogram(merger, out_dir / "merger_distance.png")}
     logs = {e.label: e.run_dir / "episodes.csv" for e in evals if e.run_dir is not None}
@@ -115,11 +60,11 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
         figures["training curves"] = curves
     per_run: dict[str, list[Path]] = {}
     for e in tqdm(evals, desc="plots", unit="run", leave=False, disable=None):
-        per_run[e.label] = plot_run(e.eval_dir, out_dir / e.label, e.label)
+        per_run[e.label] = plots.plot_evaluation(e.eval_dir, out_dir / e.label, e.label)
     result = {e.label: {**e.summary, "episodes": episodes[e.label], "metrics": metrics[e.label],
                         "eval_dir": str(e.eval_dir)} for e in evals}
     atomic_write_text(out_dir / "summary.json", json.dumps(result, indent=2) + "\n")
-    atomic_write_text(out_dir / "summary.csv", _summary_csv(metrics))
+    write_csv(out_dir / "summary.csv", _summary_rows(metrics), ["run", "metric", "mean", "ci_low", "ci_high", "n"])
     atomic_write_text(out_dir / "report.md", _report(evals, metrics, episodes, figures, per_run, out_dir,
                                                      mismatches))
     return result
@@ -141,16 +86,9 @@ def incompatibilities(evals: Sequence[Evaluation]) -> list[str]:
     return lines
 
 
-def _summary_csv(metrics: dict[str, dict[str, dict[str, float]]]) -> str:
-    buf = io.StringIO()
-    writer = csv.writer(buf)
-    writer.writerow(["run", "metric", "mean", "ci_low", "ci_high", "n"])
-    for run, ms in metrics.items():
-        for label in SUMMARY_METRICS:
-            if label in ms:
-                s = ms[label]
-                writer.writerow([run, label, s["mean"], s["ci_low"], s["ci_high"], s["n"]])
-    return buf.getvalue()
+def _summary_rows(metrics: dict[str, dict[str, dict[str, float]]]) -> list[dict[str, Any]]:
+    return [{"run": run, "metric": label, **{k: ms[label][k] for k in ("mean", "ci_low", "ci_high", "n")}}
+            for run, ms in metrics.items() for label in SUMMARY_METRICS if label in ms]
 
 
 def _report(evals: Sequence[Evaluation], metrics: dict, episodes: dict[str, int], figures: dict[str, Path],
@@ -174,17 +112,3 @@ def _report(evals: Sequence[Evaluation], metrics: dict, episodes: dict[str, int]
             lines += [f"## {label}: recorded episodes", ""]
             lines += [f"![{p.stem}]({p.relative_to(out_dir)})" for p in paths] + [""]
     return "\n".join(lines)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("runs", nargs="+", type=Path, help="evaluation folders, or run folders with eval/")
-    parser.add_argument("--out", type=Path, default=Path("report"), help="report folder (default: %(default)s)")
-    parser.add_argument("--labels", nargs="+", help="one label per run (default: folder names)")
-
-
-def run(args: argparse.Namespace) -> int:
-    result = compare(args.runs, args.out, args.labels)
-    log.info("wrote %s", args.out / "report.md")
-    print(format_table({k: v["metrics"] for k, v in result.items()},
-                       {k: int(v["episodes"]) for k, v in result.items()}))
-    return 0

@@ -1,7 +1,7 @@
 """Figures of evaluations and training runs, as PNG files (matplotlib's Agg canvas, no pyplot state).
 
 Contract: every function takes plain data (summaries, per-episode columns, a trajectory dict as written by
-`cosim.evaluation.stats.EpisodeTracker.trajectory`, a training log CSV) and a path, writes one PNG there and
+`cosim.environment.tracker.EpisodeTracker.trajectory`, a training log CSV) and a path, writes one PNG there and
 returns the path (or None when there is nothing to draw, e.g. a training log without known columns).
 - `bars`: crash %, merge %, mean distance with 95% intervals, runs side by side (the paper's bar plot).
 - `distance_histogram`: the merging vehicle's distance travelled, overlaid per run.
@@ -9,26 +9,35 @@ returns the path (or None when there is nothing to draw, e.g. a training log wit
   for the columns the log has (the trainer's `episodes.csv`: return_mean, crashed, merged, mean_distance).
 - `time_space`: time-space diagram of the merge area, and the guide AV's speed profile and actions.
 - `top_views`: a few top-view snapshots around the merge.
+- `plot_evaluation`: one evaluation folder's figures (`cosim evaluate` and `cosim compare` draw through it).
 """
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
+from cosim.config import load_config
 from cosim.environment.control import Action
-from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER
+from cosim.environment.render import COLOURS as TOP_VIEW_COLOURS
+from cosim.environment.render import top_view
+from cosim.environment.velocity_map import RoadRaster, rasterize_road
+from cosim.evaluation.store import load_trajectory, trajectory_files
+from cosim.files import column, read_csv
+from cosim.sumo.roadnet import load_roadnet
+from cosim.sumo.snapshot import KIND_HV, KIND_MERGER
 
-COLORS = {KIND_AV: "tab:green", KIND_HV: "tab:blue", KIND_MERGER: "tab:purple"}
-GUIDE_COLOR = "tab:orange"
+GUIDE_RGB = (255, 150, 20)
+CRASHED_RGB = (230, 30, 30)
+# One palette for every figure: the renderer's class colours.
+COLORS = {kind: tuple(c / 255 for c in rgb) for kind, rgb in TOP_VIEW_COLOURS.items()}
+GUIDE_COLOR = tuple(c / 255 for c in GUIDE_RGB)
 BAR_METRICS = ("crash [%]", "merge success [%]", "mean distance [m]")
 # Training-log columns, first match wins: what to plot -> candidate column names.
 TRAINING_COLUMNS: dict[str, tuple[str, ...]] = {
@@ -84,18 +93,8 @@ def distance_histogram(samples: Mapping[str, Sequence[float]], path: Path, bins:
 
 def read_training_log(path: Path) -> dict[str, np.ndarray]:
     """Numeric columns of a CSV log (unparsable cells become NaN)."""
-    with path.open(newline="") as f:
-        rows = list(csv.DictReader(f))
-    out: dict[str, np.ndarray] = {}
-    for key in rows[0] if rows else []:
-        values = []
-        for r in rows:
-            try:
-                values.append(float(r.get(key) or "nan"))
-            except ValueError:
-                values.append(math.nan)
-        out[key] = np.asarray(values)
-    return out
+    rows = read_csv(path)
+    return {key: column(rows, key) for key in (rows[0] if rows else [])}
 
 
 def _rolling(y: np.ndarray, window: int) -> np.ndarray:
@@ -190,59 +189,59 @@ def time_space(traj: Mapping[str, np.ndarray], path: Path, title: str = "", upst
 
 
 def _class_legend() -> tuple[list[Rectangle], list[str]]:
-    colors = (COLORS[KIND_AV], COLORS[KIND_HV], COLORS[KIND_MERGER], GUIDE_COLOR)
-    return [Rectangle((0, 0), 1, 1, color=c) for c in colors], ["AV", "HV", "merging vehicle", "guide AV"]
+    colors = [np.asarray(c) / 255 for c in (*TOP_VIEW_COLOURS.values(), GUIDE_RGB, CRASHED_RGB)]
+    return [Rectangle((0, 0), 1, 1, color=c) for c in colors], ["AV", "HV", "merging vehicle", "guide AV", "crashed"]
 
 
-def _lane_polygons(lanes: Sequence[tuple[np.ndarray, float]]) -> list[np.ndarray]:
-    polys = []
-    for shape, width in lanes:
-        d = np.diff(shape, axis=0)
-        n = np.stack([-d[:, 1], d[:, 0]], axis=1) / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
-        normal = np.vstack([n[:1], (n[:-1] + n[1:]) / 2, n[-1:]]) if len(n) > 1 else np.vstack([n, n])
-        left, right = shape + normal * width / 2, shape - normal * width / 2
-        polys.append(np.vstack([left, right[::-1]]))
-    return polys
-
-
-def top_views(traj: Mapping[str, np.ndarray], lanes: Sequence[tuple[np.ndarray, float]], path: Path,
-              title: str = "", offsets: Sequence[float] = (-3.0, 0.0, 3.0), half_window: float = 110.0) -> Path:
+def top_views(traj: Mapping[str, np.ndarray], road: RoadRaster, path: Path, title: str = "",
+              offsets: Sequence[float] = (-3.0, 0.0, 3.0), half_window: float = 110.0) -> Path:
     """Top views at the merge time plus `offsets` [s] (episode end when there was no merge), centred on the
-    merging vehicle (or its last place), vehicles drawn to scale and coloured by class, the guide AV orange."""
+    merging vehicle (or its last place), vehicles drawn to scale and coloured by class, the guide AV orange,
+    crashed vehicles red; drawn by the env's renderer (`cosim.environment.render.top_view`)."""
     times = np.asarray(traj["time"])
     merge_t = float(traj["merge_time"])
     anchor = merge_t if math.isfinite(merge_t) else float(times[-1])
     steps = sorted({int(np.argmin(np.abs(times - (anchor + o)))) for o in offsets})
     guide = str(traj["guide"])
-    polys = _lane_polygons(lanes)
     fig = Figure(figsize=(9, 1.9 * len(steps) + 0.4), layout="constrained")
     axes = fig.subplots(len(steps), 1, squeeze=False)[:, 0]
     merger_rows = np.flatnonzero(traj["kind"] == KIND_MERGER)
     for ax, k in zip(axes, steps, strict=True):
         rows = np.flatnonzero(traj["step"] == k)
         here = merger_rows[traj["step"][merger_rows] <= k]
-        cx, cy = (traj["x"][here[-1]], traj["y"][here[-1]]) if here.size else (traj["x"][rows].mean(), 0.0)
-        ax.add_collection(PolyCollection(polys, facecolors="0.85", edgecolors="0.6", linewidths=0.5))
-        for r in rows:
-            vid = str(traj["ids"][traj["vehicle"][r]])
-            color = GUIDE_COLOR if vid == guide else COLORS.get(int(traj["kind"][r]), "grey")
-            length, width = float(traj["length"][r]), float(traj["width"][r])
-            ax.add_patch(Rectangle((traj["x"][r] - length / 2, traj["y"][r] - width / 2), length, width,
-                                   angle=math.degrees(traj["heading"][r]), rotation_point="center",
-                                   facecolor=color, edgecolor="red" if traj["crashed"][r] else "k", lw=0.6))
-        ax.set_xlim(cx - half_window, cx + half_window)
-        # The lanes overlapping the window set its height.
-        seen = [(p[:, 1].min(), p[:, 1].max()) for p in polys
-                if p[:, 0].min() <= cx + half_window and p[:, 0].max() >= cx - half_window]
-        lo, hi = (min(a for a, _ in seen), max(b for _, b in seen)) if seen else (cy - 18, cy + 18)
-        ax.set_ylim(lo - 2, hi + 2)
-        ax.set_aspect("equal")
+        cx = traj["x"][here[-1]] if here.size else traj["x"][rows].mean()
+        ids = traj["ids"][traj["vehicle"][rows]]
+        colours = np.array([CRASHED_RGB if traj["crashed"][r] else GUIDE_RGB if str(v) == guide
+                            else TOP_VIEW_COLOURS.get(int(traj["kind"][r]), TOP_VIEW_COLOURS[KIND_HV])
+                            for r, v in zip(rows, ids, strict=True)], dtype=np.uint8).reshape(-1, 3)
+        img, extent = top_view(road, traj["x"][rows], traj["y"][rows], traj["heading"][rows], traj["length"][rows],
+                               traj["width"][rows], colours, (cx - half_window, cx + half_window))
+        ax.imshow(img, extent=extent, interpolation="nearest")
         ax.set_title(f"t = {times[k]:.1f} s", fontsize=9)
         ax.set_ylabel("y [m]", fontsize=8)
         ax.tick_params(labelsize=7)
     axes[-1].set_xlabel("x [m] (SUMO network coordinates)", fontsize=8)
-    axes[0].legend(*_class_legend(), loc="upper left", fontsize=7, ncols=4)
+    axes[0].legend(*_class_legend(), loc="upper left", fontsize=7, ncols=5)
     when = f"merge at {merge_t:.1f} s" if math.isfinite(merge_t) else "no merge: around the episode's end"
-    fig.suptitle(f"{title + ': ' if title else ''}top views around the merge ({when}); crashed vehicles "
-                 "outlined red", fontsize=10)
+    fig.suptitle(f"{title + ': ' if title else ''}top views around the merge ({when})", fontsize=10)
     return save(fig, path)
+
+
+def plot_evaluation(eval_dir: Path, plots_dir: Path, label: str,
+                    rows: Sequence[Mapping[str, str]] | None = None) -> list[Path]:
+    """One evaluation's figures: the merger distance histogram over `rows` (none without them), and per
+    recorded episode a time-space diagram with the guide AV's speed profile and top views around the merge."""
+    out = [distance_histogram({label: column(rows, "merger_distance")},
+                              plots_dir / "merger_distance.png")] if rows is not None else []
+    files = trajectory_files(eval_dir)
+    if files:
+        cfg = load_config(eval_dir / "config.yaml")
+        road = rasterize_road(load_roadnet(cfg.net.file).lane_shapes())
+        for f in files:
+            traj = load_trajectory(f)
+            seed = f.stem.split("_")[1]
+            out.append(time_space(traj, plots_dir / f"timespace_seed_{seed}.png",
+                                  title=f"{label}: episode seed {seed}, guide AV {traj['guide']}"))
+            out.append(top_views(traj, road, plots_dir / f"topview_seed_{seed}.png",
+                                 title=f"{label}: episode seed {seed}"))
+    return out

@@ -18,16 +18,17 @@ import numpy as np
 from matplotlib.figure import Figure
 from scipy.stats import mannwhitneyu
 
-from agents.sweep import ALTRUISTIC, EGOISTIC, median, pooled, rate, run_name, values
 from cosim.config import EVAL_SEED_START, load_config
 from cosim.evaluation import plots
-from cosim.evaluation.stats import format_table, summarize
+from cosim.evaluation.stats import finite, format_table, median, rate, summarize
+from cosim.evaluation.store import pooled, run_name
 from cosim.files import atomic_write_text
 from cosim.sumo.net import load_net
 
 RATES = {"crash [%]": "crashed", "crash, AV at fault [%]": "cause_av", "crash, HV into AV [%]": "cause_hv_into_av",
          "crash, merging vehicle [%]": "cause_merger", "merge success [%]": "merged"}
 FLOW = ("throughput [veh/h]", "time loss [s]")
+EGOISTIC, ALTRUISTIC = 0.0, math.pi / 4  # [rad] the paper's two SVO angles
 
 
 def phi_label(phi: float) -> str:
@@ -144,7 +145,7 @@ def _claims(out: Path, phi_rows: Mapping[float, list], run_rows: Mapping[tuple[f
         beyond = {lbl: float(np.mean([float(r["merger_distance"]) > end for r in phi_rows[p]]))
                   for lbl, p in (("egoistic", ego), ("altruistic", alt))}
         med = {lbl: median(phi_rows[p], "merger_distance") for lbl, p in (("egoistic", ego), ("altruistic", alt))}
-        p_value = shift_p_value(*(values(phi_rows[p], "merger_distance") for p in (ego, alt)))
+        p_value = shift_p_value(*(finite(phi_rows[p], "merger_distance") for p in (ego, alt)))
         claims.append({"claim": "(3) the merging vehicle's distance shifts downstream with altruistic AVs",
                        "holds": p_value < 0.05,
                        "detail": f"median {med['egoistic']:.1f} m egoistic vs {med['altruistic']:.1f} m altruistic; "

@@ -32,6 +32,8 @@ from typing import Any
 import numpy as np
 import scipy.stats
 
+from cosim.files import column as column_of
+
 # Summary label -> (episodes.csv column, scale). Booleans become percentages by the x100 scale.
 SUMMARY_METRICS: dict[str, tuple[str, float]] = {
     "crash [%]": ("crashed", 100.0),
@@ -96,24 +98,6 @@ def rate_ci(values: Iterable[float], confidence: float = 0.95) -> Interval:
     return Interval(k / n, float(ci.low), float(ci.high), n)
 
 
-def _number(value: Any) -> float:
-    """A CSV cell or a Python value as a float: booleans as 0/1, empty or unparsable as NaN."""
-    if isinstance(value, bool | np.bool_):
-        return float(value)
-    if isinstance(value, str):
-        v = value.strip().lower()
-        if v in ("true", "false"):
-            return float(v == "true")
-        try:
-            return float(v) if v else math.nan
-        except ValueError:
-            return math.nan
-    try:
-        return math.nan if value is None else float(value)
-    except (TypeError, ValueError):
-        return math.nan
-
-
 def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95,
               metrics: Mapping[str, tuple[str, float]] = SUMMARY_METRICS) -> dict[str, dict[str, float | int]]:
     """Metric label -> {mean, ci_low, ci_high, n} over the episodes; metrics missing from the rows are left out.
@@ -123,10 +107,27 @@ def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95,
     for label, (column, scale) in metrics.items():
         if not any(column in r for r in rows):
             continue
-        values = [_number(r.get(column)) for r in rows]
+        values = column_of(rows, column)
         ci = rate_ci(values, confidence) if label in RATE_METRICS else mean_ci(values, confidence)
         out[label] = Interval(ci.mean * scale, ci.low * scale, ci.high * scale, ci.n).as_dict()
     return out
+
+
+def rate(rows: Sequence[Mapping[str, Any]], column: str, confidence: float = 0.95) -> dict[str, float | int]:
+    """A 0/1 column as a percentage with its Wilson interval: {mean, ci_low, ci_high, n}."""
+    ci = rate_ci(column_of(rows, column), confidence)
+    return Interval(100 * ci.mean, 100 * ci.low, 100 * ci.high, ci.n).as_dict()
+
+
+def finite(rows: Sequence[Mapping[str, Any]], column: str) -> np.ndarray:
+    """A column's values in the rows that have one."""
+    x = column_of(rows, column)
+    return x[np.isfinite(x)]
+
+
+def median(rows: Sequence[Mapping[str, Any]], column: str) -> float:
+    got = finite(rows, column)
+    return float(np.median(got)) if got.size else math.nan
 
 
 def _cell(stats: Mapping[str, float] | None) -> str:

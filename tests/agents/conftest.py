@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from agents.fake_env import CueEnv
-from agents.rollout import StepResult
+from cosim.workers import StepResult
 
 
 def _delivers_exactly(pool: Any, dtype: str) -> list[StepResult]:

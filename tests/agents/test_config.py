@@ -1,4 +1,7 @@
-"""TrainConfig validation: defaults, unknown keys and bad values name the key `train.<key>`."""
+"""TrainConfig validation: defaults, unknown keys and bad values name the key `train.<key>`; `train_config` takes
+a Config (its typed section) or a raw mapping."""
+
+import re
 
 import pytest
 
@@ -21,20 +24,30 @@ def test_values_from_the_config_file_section() -> None:
 @pytest.mark.parametrize(
     ("train", "message"),
     [
-        ({"bogus": 1}, "train.bogus"),
-        ({"workers": 0}, "train.workers"),
-        ({"workers": 1.5}, "train.workers"),
-        ({"gamma": 1.5}, "train.gamma"),
-        ({"lr": "fast"}, "train.lr"),
-        ({"optimizer": "sgd"}, "train.optimizer"),
-        ({"shared_policy": "yes"}, "train.shared_policy"),
-        ({"device": "tpu"}, "train.device"),
-        ({"entropy_coef": -0.1}, "train.entropy_coef"),
+        ({"bogus": 1}, "config key train.bogus: unknown key; allowed: algo, "),
+        ({"workers": 0}, "train.workers: must be > 0, got 0"),
+        ({"workers": 1.5}, "train.workers: expected an integer, got 1.5"),
+        ({"gamma": 1.5}, "train.gamma: must be <= 1, got 1.5"),
+        ({"lr": "fast"}, "train.lr: expected a number, got 'fast'"),
+        ({"optimizer": "sgd"}, "train.optimizer: expected 'adam' or 'rmsprop', got 'sgd'"),
+        ({"shared_policy": "yes"}, "train.shared_policy: expected true or false, got 'yes'"),
+        ({"device": "tpu"}, "train.device: expected cpu, cuda or cuda:N, got 'tpu'"),
+        ({"entropy_coef": -0.1}, "train.entropy_coef: must be >= 0, got -0.1"),
+        ({"lr_final": -1}, "train.lr_final: must be >= 0, got -1"),
     ],
 )
 def test_bad_keys_and_values_name_the_key(train: dict, message: str) -> None:
-    with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
-        train_config(load_config({"train": train}))
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        load_config({"train": train})
+    with pytest.raises(ConfigError, match=re.escape(message)):  # a raw section: the same check
+        train_config(train)
+
+
+def test_train_config_of_a_config_is_its_section() -> None:
+    cfg = load_config({"train": {"algo": "ppo", "lr_final": 1e-5}})
+    assert train_config(cfg) is cfg.train and cfg.train.algo == "ppo" and cfg.train.lr_final == 1e-5
+    assert train_config({"algo": "ppo", "lr_final": "1e-5"}) == cfg.train  # YAML 1.1 reads 1e-5 as a string
+    assert train_config(None) == TrainConfig()
 
 
 def test_config_to_dict_round_trips_with_a_train_section() -> None:

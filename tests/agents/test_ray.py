@@ -18,10 +18,12 @@ from agents.sweep import sweep
 from agents.train import train
 from cosim.config import load_config
 from cosim.errors import ConfigError, SimulationError
-from cosim.evaluation.runner import read_rows
+from cosim.files import read_csv
 
 ray = pytest.importorskip("ray")
 from agents.ray_pool import RayWorkerPool  # noqa: E402 - only where Ray is installed
+
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -77,7 +79,7 @@ def test_a_failing_actor_in_training_is_restarted_and_its_episode_not_counted(tm
                    env_factory=make_fake_env(n_agents=2, fail_once_file=str(flag), fail_at_step=3,
                                              fail_by_exit=by_exit))
     assert flag.exists() and result.restarts == 1 and result.lost_episodes == 1
-    assert len(read_rows(tmp_path / "run" / "episodes.csv")) == result.episodes == 8
+    assert len(read_csv(tmp_path / "run" / "episodes.csv")) == result.episodes == 8
 
 
 def test_ray_trains_the_smoke_config_like_the_local_backend_and_resumes(tmp_path: Path) -> None:
@@ -88,7 +90,7 @@ def test_ray_trains_the_smoke_config_like_the_local_backend_and_resumes(tmp_path
     train(cfg, tmp_path / "ray", workers=2, episodes=4, backend="ray", progress=False)
     resumed = train(cfg, tmp_path / "ray", workers=2, episodes=8, resume=True, backend="ray", progress=False)
     assert (resumed.episodes, resumed.updates, resumed.samples) == (local.episodes, local.updates, local.samples)
-    assert read_rows(tmp_path / "ray" / "episodes.csv") == read_rows(tmp_path / "local" / "episodes.csv")
+    assert read_csv(tmp_path / "ray" / "episodes.csv") == read_csv(tmp_path / "local" / "episodes.csv")
     a, b = (read_checkpoint(r.checkpoint)["policy"]["nets"][0] for r in (local, resumed))
     assert all(torch.equal(v, b[k]) for k, v in a.items())
 

@@ -18,6 +18,8 @@ from stable_baselines3 import PPO  # noqa: E402 - only where the extra is instal
 
 from agents.sb3 import load_actor  # noqa: E402
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
+
 ROOT = Path(__file__).resolve().parents[2]
 
 

@@ -10,6 +10,8 @@ import pytest
 
 from cosim.cli import main
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
+
 ROOT = Path(__file__).resolve().parents[2]
 
 

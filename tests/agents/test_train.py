@@ -1,6 +1,5 @@
 """The trainer end to end on the fake env: learning, checkpoints, resume, worker restarts, Ctrl-C, CLI."""
 
-import argparse
 import csv
 import os
 import signal
@@ -16,9 +15,12 @@ from agents.config import train_config
 from agents.fake_env import CueEnv, make_fake_env
 from agents.model import ActorCritic
 from agents.multiagent import MultiAgentPolicy
-from agents.train import add_arguments, run, train
+from agents.train import train
+from cosim.cli import main
 from cosim.config import load_config
 from cosim.errors import ConfigError, SimulationError
+
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
 SMALL = {"feature_dim": 32, "head_hidden": 32, "optimizer": "adam", "lr": 0.002, "disseminate_every": 4, "gamma": 0.5,
          "checkpoint_every": 10, "seed": 3, "precision": "float32"}
@@ -185,10 +187,8 @@ def test_cli_arguments_reach_the_trainer(tmp_path: Path, monkeypatch: pytest.Mon
     config = tmp_path / "smoke.yaml"
     config.write_text("train:\n  feature_dim: 16\n  head_hidden: 16\n")
     monkeypatch.setattr(train_module, "_default_env_factory", lambda cfg: make_fake_env(n_agents=2))
-    parser = add_arguments(argparse.ArgumentParser())
-    args = parser.parse_args(["--config", str(config), "--out", str(tmp_path / "run"), "--workers", "1",
-                              "--episodes", "2", "--set", "train.lr=0.01", "--set", "train.algo=ppo"])
-    assert run(args) == 0
+    assert main(["train", "--config", str(config), "--out", str(tmp_path / "run"), "--workers", "1",
+                 "--episodes", "2", "--set", "train.lr=0.01", "--set", "train.algo=ppo"]) == 0
     _, meta = load_policy(tmp_path / "run")
     assert meta["train"]["lr"] == 0.01 and meta["train"]["algo"] == "ppo" and meta["train"]["workers"] == 1
     saved = load_config(tmp_path / "run" / "config.yaml")  # the resolved config loads back

@@ -11,6 +11,8 @@ import cosim
 from cosim.cli import main
 from cosim.errors import ConfigError, NetError, SimulationError
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
+
 ROOT = Path(__file__).resolve().parents[2]
 NET_DIR = ROOT / "sumo_net" / "merge"
 
@@ -54,6 +56,15 @@ def test_sumo_that_fails_to_start() -> None:
 def test_unknown_key_through_the_env_factory() -> None:
     with pytest.raises(ConfigError, match="scenario.n_av: unknown"):
         cosim.parallel_env("configs/default.yaml", {"scenario.n_av": 3})
+
+
+def test_every_config_problem_names_the_file_and_its_key() -> None:
+    with pytest.raises(ConfigError) as caught:
+        cosim.parallel_env("configs/default.yaml", {"scenario.n_avs": 0, "train.algo": "dqn"})
+    assert str(caught.value).splitlines() == [
+        "configs/default.yaml: scenario.n_avs: must be > 0, got 0",
+        "configs/default.yaml: train.algo: expected 'a2c' or 'ppo', got 'dqn'",
+    ]
 
 
 def test_cli_prints_one_line_and_exits_2(capsys: pytest.CaptureFixture[str], caplog) -> None:

@@ -8,6 +8,7 @@ import pytest
 
 from cosim.cli import main
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
 def test_build_net_then_run_scenario_on_it(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     caplog.set_level("INFO")

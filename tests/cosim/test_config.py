@@ -1,4 +1,4 @@
-"""Config loading: YAML, overrides, presets, and clear errors for bad keys and values."""
+"""Config loading: YAML, overrides, presets, typed sections, the schema, and clear errors for bad keys and values."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from cosim.config import OBSERVATION_PRESETS, load_config
+from cosim.config import OBSERVATION_PRESETS, Config, EvaluateConfig, TrainConfig, load_config
 from cosim.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -43,7 +43,7 @@ def test_per_agent_phi_and_round_trip() -> None:
         ({"scenario.n_hvs": -3}, "scenario.n_hvs: must be >= 0"),
         ({"scenario.n_avs": 2.5}, "scenario.n_avs: expected an integer"),
         ({"sim.horizon": "long"}, "sim.horizon: expected a number"),
-        ({"observation.preset": "huge"}, "observation.preset: unknown preset"),
+        ({"observation.preset": "huge"}, "observation.preset: expected 'default' or 'paper', got 'huge'"),
         ({"observation.channels": ["road", "cars"]}, "observation.channels"),
         ({"observation.dtype": "int64"}, "observation.dtype"),
         ({"reward.weights": {"speeed": 1.0}}, "reward.weights.speeed: unknown term"),
@@ -90,3 +90,67 @@ def test_base_config_and_path_resolution(tmp_path: Path, monkeypatch: pytest.Mon
     (exp / "loop.yaml").write_text("base: loop.yaml\n")
     with pytest.raises(ConfigError, match="includes itself"):
         load_config(exp / "loop.yaml")
+
+
+def test_unknown_nested_key_names_the_path_and_the_allowed_keys() -> None:
+    with pytest.raises(ConfigError) as caught:
+        load_config(None, {"train": {"lrr": 0.1}})
+    message = str(caught.value)
+    assert message.startswith("config key train.lrr: unknown key; allowed: ")
+    assert set(message.split("allowed: ")[1].split(", ")) == set(TrainConfig.model_fields)
+
+
+def test_bound_violations_name_the_bound() -> None:
+    for overrides, message in [({"train.gamma": 1.5}, "train.gamma: must be <= 1, got 1.5"),
+                               ({"evaluate.workers": 0}, "evaluate.workers: must be >= 1, got 0"),
+                               ({"sim.step_length": 0}, "sim.step_length: must be > 0, got 0"),
+                               ({"train.algo": "dqn"}, "train.algo: expected 'a2c' or 'ppo', got 'dqn'")]:
+        with pytest.raises(ConfigError) as caught:
+            load_config(None, overrides)
+        assert str(caught.value) == message
+
+
+def test_every_problem_on_its_own_line_with_the_file(tmp_path: Path) -> None:
+    path = ROOT / "configs" / "default.yaml"
+    with pytest.raises(ConfigError) as caught:
+        load_config(path, {"scenario.n_avs": 0, "train.lr": "fast", "sim.nope": 1})
+    lines = str(caught.value).splitlines()
+    assert len(lines) == 3 and all(line.startswith(f"{path}: ") for line in lines)
+    assert any("scenario.n_avs: must be > 0" in line for line in lines)
+    assert any("train.lr: expected a number" in line for line in lines)
+
+
+def test_base_and_set_go_through_the_same_validation(tmp_path: Path) -> None:
+    (tmp_path / "bad.yaml").write_text(f"base: {ROOT / 'configs' / 'default.yaml'}\nscenario:\n  n_avs: -1\n")
+    (tmp_path / "child.yaml").write_text("base: bad.yaml\n")
+    (tmp_path / "good.yaml").write_text(f"base: {ROOT / 'configs' / 'default.yaml'}\n")
+    messages = []
+    for path, overrides in [(tmp_path / "child.yaml", None), (tmp_path / "good.yaml", ["scenario.n_avs=-1"])]:
+        with pytest.raises(ConfigError) as caught:
+            load_config(path, overrides)
+        messages.append(str(caught.value).removeprefix(f"{path}: "))
+    assert messages[0] == messages[1] == "scenario.n_avs: must be > 0, got -1"
+
+
+def test_train_and_evaluate_are_typed_sections() -> None:
+    cfg = load_config(ROOT / "configs" / "smoke.yaml", ["evaluate.episodes=7", "train.lr=1"])
+    assert isinstance(cfg.train, TrainConfig) and cfg.train.workers == 2 and cfg.train.lr == 1.0
+    assert cfg.evaluate == EvaluateConfig(episodes=7) and cfg.evaluate.confidence == 0.95
+    # to_dict keeps the keys given in these two sections, as before they were typed.
+    assert cfg.to_dict()["evaluate"] == {"episodes": 7}
+    assert set(cfg.to_dict()["train"]) == {"workers", "episodes", "checkpoint_every", "disseminate_every", "algo",
+                                           "ppo_epochs", "ppo_minibatches", "gamma", "gae_lambda", "lr",
+                                           "entropy_coef"}
+    assert load_config(cfg) == cfg
+
+
+def test_json_schema_states_units_and_bounds() -> None:
+    defs = Config.model_json_schema()["$defs"]
+    units = {("SimConfig", "step_length"): "[s]", ("ScenarioConfig", "speed_range"): "[m/s]",
+             ("AVConfig", "accel"): "[m/s^2]", ("RewardConfig", "phi"): "[rad]", ("TrainConfig", "budget_min"): "[min]",
+             ("ScenarioConfig", "inflow"): "[veh/h]"}
+    for (section, key), unit in units.items():
+        assert defs[section]["properties"][key]["description"].endswith(unit), (section, key)
+    assert defs["SimConfig"]["properties"]["step_length"]["exclusiveMinimum"] == 0
+    assert defs["TrainConfig"]["properties"]["gamma"]["maximum"] == 1
+    assert defs["TrainConfig"]["properties"]["algo"]["enum"] == ["a2c", "ppo"]

@@ -14,6 +14,8 @@ from cosim.sumo.net import load_net
 from cosim.sumo.scenario import MERGER_ID, idm_gap, plan_episode, write_episode
 from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
+
 ROOT = Path(__file__).resolve().parents[2]
 AV = AVConfig(speed_step=2.0, max_speed=30.0)
 

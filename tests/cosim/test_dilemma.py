@@ -13,6 +13,8 @@ from cosim.environment.merge_env import MergeEnv
 from cosim.environment.policies import POLICIES
 from cosim.sumo.outputs import TRIPINFO_FILE, read_tripinfo
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
+
 SEEDS = range(10_000_000, 10_000_030)  # evaluation seeds, fixed
 
 

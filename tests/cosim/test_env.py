@@ -17,7 +17,11 @@ from cosim.environment.policies import scripted_policy
 from cosim.environment.tracker import EpisodeTracker
 from cosim.errors import SimulationError
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
+
 # The env's mechanics on the free-flow scene: AVs spread over three lanes. The dilemma has tests of its own.
+
+
 FREE = "configs/free_flow.yaml"
 SMALL = {"scenario.n_avs": 3, "scenario.n_hvs": 6}
 

@@ -14,6 +14,7 @@ from cosim.evaluation.stats import format_table, mean_ci, rate_ci, summarize
 from cosim.sumo.net import Chainage, load_net
 from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
 def test_mean_ci_known_values() -> None:
     ci = mean_ci([1, 2, 3, 4, 5])

@@ -13,6 +13,8 @@ from cosim.sumo.netdesc import load_net_description
 from cosim.sumo.roadnet import load_roadnet
 from sumo_net.build import build_merge_net, run_netconvert
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
+
 DEFAULT_NET = Path(__file__).resolve().parents[2] / "sumo_net" / "merge" / "merge.net.xml"
 
 

@@ -14,6 +14,8 @@ from cosim.sumo.netdesc import NetDescription, infer_net_description, load_net_d
 from cosim.sumo.roadnet import RoadNet, load_roadnet
 from sumo_net.build import build_merge_net, run_netconvert
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
+
 GOOD = "highway: [hw_in, hw_merge, hw_out]\nramp: [ramp]\nmerge_edge: hw_merge\naccel_lanes: [0]\n"
 
 

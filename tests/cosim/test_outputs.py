@@ -23,6 +23,8 @@ from cosim.sumo.outputs import (
     read_tripinfo,
 )
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
+
 TRIPS = """<tripinfos>
     <tripinfo id="a" duration="20.00" routeLength="500.00" timeLoss="2.00" vaporized=""/>
     <tripinfo id="b" arrival="8.00" duration="10.00" routeLength="100.50" timeLoss="4.00" vaporized="traci"/>

@@ -10,10 +10,12 @@ from matplotlib.figure import Figure
 
 import cosim
 from cosim.environment.policies import POLICIES
+from cosim.environment.velocity_map import rasterize_road
 from cosim.evaluation import plots
 from cosim.sumo.roadnet import load_roadnet
 from cosim.sumo.snapshot import KIND_MERGER
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
 @pytest.fixture(scope="module")
 def merged_episode() -> dict[str, np.ndarray]:
@@ -46,7 +48,7 @@ def figures(monkeypatch: pytest.MonkeyPatch) -> list[Figure]:
 
 def test_top_views_have_axis_labels_a_legend_and_a_title(merged_episode, figures, tmp_path: Path) -> None:
     lanes = load_roadnet("sumo_net/dilemma/dilemma.net.xml").lane_shapes()
-    plots.top_views(merged_episode, lanes, tmp_path / "top.png", title="courteous: episode seed 1")
+    plots.top_views(merged_episode, rasterize_road(lanes), tmp_path / "top.png", title="courteous: episode seed 1")
     (fig,) = figures
     axes = fig.axes
     assert fig.get_suptitle().startswith("courteous: episode seed 1: top views around the merge (merge at ")

@@ -14,8 +14,12 @@ from cosim.environment.velocity_map import RoadRaster, VelocityMapper
 from cosim.errors import ConfigError
 from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
+
 # Two AVs, two HVs, the merging vehicle. av_0 sees av_1 and hv_0; hv_1 is 300 m away; the merger is
 # out of av_0's window too, but counts anyway (the paper's k in V~ ∪ {M}).
+
+
 SCENE = Snapshot.build(
     ids=["av_0", "av_1", "hv_0", "hv_1", "merger"],
     kind=[KIND_AV, KIND_AV, KIND_HV, KIND_HV, KIND_MERGER],

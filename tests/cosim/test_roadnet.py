@@ -11,6 +11,7 @@ import pytest
 from cosim.errors import NetError
 from cosim.sumo.roadnet import load_roadnet
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
 def test_reads_edges_lanes_and_shapes(two_lane_net: Path) -> None:
     net = load_roadnet(two_lane_net)

@@ -13,23 +13,18 @@ import numpy as np
 import pytest
 import torch
 
-from agents.checkpoint import CheckpointError, act_agents, save_checkpoint
+from agents.checkpoint import CheckpointError, TrainedPolicy, act_agents, save_checkpoint
 from agents.model import ActorCritic
 from cosim.cli import main
 from cosim.config import load_config
 from cosim.errors import ConfigError, CosimError, NetError
 from cosim.evaluation.compare import compare
-from cosim.evaluation.runner import (
-    CHECKPOINT,
-    Job,
-    PolicySpec,
-    evaluate,
-    evaluate_config,
-    read_rows,
-    run_episodes,
-    summarize_evaluation,
-)
+from cosim.evaluation.runner import Baseline, Job, evaluate, run_episodes
+from cosim.evaluation.store import summarize_evaluation
+from cosim.files import read_csv
 from sumo_net.build import run_netconvert
+
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
 SHORT = ["sim.horizon=8"]
 PNG = b"\x89PNG\r\n\x1a\n"
@@ -46,12 +41,12 @@ def _is_png(path: Path) -> bool:
 @pytest.fixture(scope="module")
 def idle_eval(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("eval") / "idle"
-    evaluate(_cfg(), PolicySpec("idle"), out, episodes=3, seed=100, trajectories=1)
+    evaluate(_cfg(), Baseline("idle"), out, episodes=3, seed=100, trajectories=1)
     return out
 
 
 def test_evaluation_files_and_summary(idle_eval: Path) -> None:
-    rows = read_rows(idle_eval / "episodes.csv")
+    rows = read_csv(idle_eval / "episodes.csv")
     assert [int(r["seed"]) for r in rows] == [100, 101, 102]
     for key in ("length", "crashed", "crash_av", "crash_hv", "crash_merger", "merged", "merge_failed",
                 "time_to_merge", "mean_distance", "av_distance",
@@ -76,13 +71,13 @@ def test_resume_skips_done_episodes_and_drops_a_partial_row(idle_eval: Path, tmp
     shutil.copytree(idle_eval, out)
     lines = (out / "episodes.csv").read_text().splitlines(keepends=True)
     (out / "episodes.csv").write_text("".join(lines[:3]) + lines[3][:25])  # interrupted mid-row of seed 102
-    evaluate(_cfg(), PolicySpec("idle"), out, episodes=4, seed=100, trajectories=0, plots=False)
-    rows = read_rows(out / "episodes.csv")
+    evaluate(_cfg(), Baseline("idle"), out, episodes=4, seed=100, trajectories=0, plots=False)
+    rows = read_csv(out / "episodes.csv")
     assert [int(r["seed"]) for r in rows] == [100, 101, 102, 103]
-    original = read_rows(idle_eval / "episodes.csv")
+    original = read_csv(idle_eval / "episodes.csv")
     assert rows[2]["mean_distance"] == original[2]["mean_distance"]  # re-run deterministically
     with pytest.raises(CosimError, match="other policy"):
-        evaluate(_cfg(), PolicySpec("random"), out, episodes=1, seed=100, plots=False)
+        evaluate(_cfg(), Baseline("random"), out, episodes=1, seed=100, plots=False)
 
 
 def test_resume_with_another_config_is_refused(idle_eval: Path, tmp_path: Path) -> None:
@@ -90,27 +85,27 @@ def test_resume_with_another_config_is_refused(idle_eval: Path, tmp_path: Path) 
     shutil.copytree(idle_eval, out)
     before = (out / "episodes.csv").read_text()
     with pytest.raises(ConfigError, match=f"{out}.*another config"):
-        evaluate(_cfg("reward.phi=0.5"), PolicySpec("idle"), out, episodes=4, seed=100, plots=False)
+        evaluate(_cfg("reward.phi=0.5"), Baseline("idle"), out, episodes=4, seed=100, plots=False)
     assert (out / "episodes.csv").read_text() == before  # nothing of the other config mixed in
     # A folder from before the hash was stored: its config.yaml is hashed instead.
     meta = json.loads((out / "evaluation.json").read_text())
     del meta["config_sha256"]
     (out / "evaluation.json").write_text(json.dumps(meta))
     with pytest.raises(ConfigError, match="another config"):
-        evaluate(_cfg("reward.phi=0.5"), PolicySpec("idle"), out, episodes=4, seed=100, plots=False)
-    evaluate(_cfg(), PolicySpec("idle"), out, episodes=3, seed=100, plots=False)  # the same config resumes
+        evaluate(_cfg("reward.phi=0.5"), Baseline("idle"), out, episodes=4, seed=100, plots=False)
+    evaluate(_cfg(), Baseline("idle"), out, episodes=3, seed=100, plots=False)  # the same config resumes
 
 
 def test_evaluate_and_compare_summarise_the_same_rows(idle_eval: Path, tmp_path: Path) -> None:
     out = tmp_path / "extra"
     shutil.copytree(idle_eval, out)
     # Rows of seeds this evaluation did not ask for (another --seed into the same folder, say).
-    rows = read_rows(out / "episodes.csv")
+    rows = read_csv(out / "episodes.csv")
     with (out / "episodes.csv").open("a", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         for k in range(5):
             w.writerow({**rows[0], "seed": 500 + k, "crashed": "True", "mean_distance": "1.0"})
-    summary = evaluate(_cfg(), PolicySpec("idle"), out, episodes=3, seed=100, trajectories=0, plots=False)
+    summary = evaluate(_cfg(), Baseline("idle"), out, episodes=3, seed=100, trajectories=0, plots=False)
     picked, metrics = summarize_evaluation(out, 100, 3)
     same = json.dumps(summary["metrics"], sort_keys=True)  # as text: NaN == NaN
     assert [int(r["seed"]) for r in picked] == [100, 101, 102] and json.dumps(metrics, sort_keys=True) == same
@@ -123,15 +118,15 @@ def test_evaluate_and_compare_summarise_the_same_rows(idle_eval: Path, tmp_path:
 @pytest.mark.parametrize("policy", ["sumo", "random"])
 def test_baselines_on_two_nets(net: str, policy: str, two_lane_net: Path, tmp_path: Path) -> None:
     extra = [f"net.file={two_lane_net}", "scenario.n_hvs=6"] if net == "two_lane" else []
-    summary = evaluate(_cfg(*extra), PolicySpec(policy), tmp_path, episodes=2, seed=7, trajectories=0,
+    summary = evaluate(_cfg(*extra), Baseline(policy), tmp_path, episodes=2, seed=7, trajectories=0,
                        plots=False)
     assert summary["episodes"] == 2 and math.isfinite(summary["metrics"]["mean distance [m]"]["mean"])
     if policy == "sumo":
-        assert read_rows(tmp_path / "episodes.csv")[0]["guide_actions"] == ""  # SUMO drives: no actions
+        assert read_csv(tmp_path / "episodes.csv")[0]["guide_actions"] == ""  # SUMO drives: no actions
 
 
 def test_workers_give_the_same_rows(tmp_path: Path) -> None:
-    job = Job(_cfg("sim.outputs=true", f"sim.output_dir={tmp_path}").to_dict(), PolicySpec("random"),
+    job = Job(_cfg("sim.outputs=true", f"sim.output_dir={tmp_path}").to_dict(), Baseline("random"),
               str(tmp_path), frozenset())
     one = sorted(run_episodes(job, [1, 2], workers=1), key=lambda r: r["seed"])
     two = sorted(run_episodes(job, [1, 2], workers=2), key=lambda r: r["seed"])
@@ -169,18 +164,18 @@ def test_checkpoint_policy_and_a_mismatched_one(tmp_path: Path) -> None:
     good, bad = tmp_path / "good.pt", tmp_path / "bad.pt"
     _tiny_checkpoint(good, shape)
     _tiny_checkpoint(bad, (shape[0] + 1, *shape[1:]))
-    summary = evaluate(cfg, PolicySpec(CHECKPOINT, str(good), greedy=False), tmp_path / "ev", episodes=2, seed=5,
+    summary = evaluate(cfg, TrainedPolicy(str(good), greedy=False), tmp_path / "ev", episodes=2, seed=5,
                        trajectories=0, plots=False)
     assert summary["episodes"] == 2 and summary["greedy"] is False
-    actions = read_rows(tmp_path / "ev" / "episodes.csv")[0]["guide_actions"].split()
+    actions = read_csv(tmp_path / "ev" / "episodes.csv")[0]["guide_actions"].split()
     assert actions and all(0 <= int(a) < 5 for a in actions)
     # The same checkpoint file trained further: its old evaluation is not resumed as if it were the new one's.
     _tiny_checkpoint(good, shape, updates=9)
     with pytest.raises(CosimError, match="other trained_updates"):
-        evaluate(cfg, PolicySpec(CHECKPOINT, str(good), greedy=False), tmp_path / "ev", episodes=4, seed=5,
+        evaluate(cfg, TrainedPolicy(str(good), greedy=False), tmp_path / "ev", episodes=4, seed=5,
                  trajectories=0, plots=False)
     with pytest.raises(CheckpointError, match="observations of shape"):
-        evaluate(cfg, PolicySpec(CHECKPOINT, str(bad)), tmp_path / "ev_bad", episodes=1, plots=False)
+        evaluate(cfg, TrainedPolicy(str(bad)), tmp_path / "ev_bad", episodes=1, plots=False)
     assert not (tmp_path / "ev_bad" / "evaluation.json").exists()  # a failed start claims no folder
 
 
@@ -197,9 +192,9 @@ def test_bad_input_is_a_clear_error(tmp_path: Path, two_lane_net: Path, caplog) 
         assert f"{flag}: must be >=" in caplog.text and f"got {value}" in caplog.text
         assert not (tmp_path / "ev0").exists()
     with pytest.raises(ConfigError, match="episodes: must be >= 1"):
-        evaluate(_cfg(), PolicySpec("idle"), tmp_path / "ev0", episodes=0, plots=False)
+        evaluate(_cfg(), Baseline("idle"), tmp_path / "ev0", episodes=0, plots=False)
     with pytest.raises(ConfigError, match="evaluate.episode"):
-        evaluate_config({"episode": 3})
+        load_config(_cfg(), {"evaluate.episode": 3})
     # A net without a merge: the 2-lane net with its ramp taken out.
     for name in ("merge.nod.xml", "merge.edg.xml", "merge.con.xml"):
         shutil.copy(two_lane_net.with_name(name), tmp_path / name)
@@ -208,7 +203,7 @@ def test_bad_input_is_a_clear_error(tmp_path: Path, two_lane_net: Path, caplog) 
         f.write_text("\n".join(line for line in f.read_text().splitlines() if key not in line))
     straight = run_netconvert(tmp_path, "merge")
     with pytest.raises(NetError, match="cannot infer"):
-        evaluate(_cfg(f"net.file={straight}"), PolicySpec("idle"), tmp_path / "ev", episodes=1, plots=False)
+        evaluate(_cfg(f"net.file={straight}"), Baseline("idle"), tmp_path / "ev", episodes=1, plots=False)
 
 
 def test_cli_evaluate_and_compare_report(idle_eval: Path, tmp_path: Path, capsys) -> None:

@@ -11,11 +11,12 @@ from pettingzoo.test import parallel_api_test
 
 import cosim
 from agents.fake_env import CueEnv, make_fake_env
-from agents.rollout import START_ATTEMPTS, WorkerPool
 from agents.train import episode_seed
 from cosim.config import EVAL_SEED_START
 from cosim.errors import NetError, SimulationError
+from cosim.workers import START_ATTEMPTS, WorkerPool
 
+pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
 def test_fake_env_passes_the_pettingzoo_parallel_api_test() -> None:
     parallel_api_test(CueEnv(n_agents=3), num_cycles=20)

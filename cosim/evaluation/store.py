@@ -1,0 +1,99 @@
+"""An evaluation folder on disk: what `cosim evaluate` writes and `cosim compare` / `cosim sweep` read.
+
+Contract: `episodes.csv` holds one row per episode (`cosim.files.read_csv` reads it); `summarize_evaluation`
+and `pooled` pick the rows of the requested seeds and summarise them (`cosim.evaluation.stats.summarize`);
+`trajectories/seed_S.npz` holds the recorded episodes (`save_trajectory` / `load_trajectory`); `summary.json`
+names what was evaluated (`find_evaluation` reads it). `config_hash` and `scenario_hash` tell whether two
+folders evaluated the same episodes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cosim.errors import CosimError
+from cosim.evaluation.stats import summarize
+from cosim.files import atomic_path, read_csv
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    label: str
+    eval_dir: Path
+    run_dir: Path | None  # the training run, for its training log
+    summary: dict[str, Any]
+
+
+def find_evaluation(path: Path, label: str | None = None) -> Evaluation:
+    """An evaluation folder, or a run folder with one in `eval/`."""
+    path = Path(path)
+    for eval_dir in (path, path / "eval"):
+        if (eval_dir / "summary.json").is_file():
+            summary = json.loads((eval_dir / "summary.json").read_text())
+            run = summary.get("run") or (str(path) if eval_dir != path else None)
+            return Evaluation(label or path.name, eval_dir, None if run is None else Path(run), summary)
+    raise CosimError(f"{path}: no evaluation found (summary.json here or in {path / 'eval'}); run "
+                     f"`cosim evaluate --out {path}` (or `--run {path}`) first")
+
+
+def save_trajectory(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
+    with atomic_path(path) as tmp:
+        np.savez_compressed(tmp, **arrays)
+
+
+def summarize_evaluation(eval_dir: Path, first_seed: int, episodes: int,
+                         confidence: float = 0.95) -> tuple[list[dict[str, str]], dict[str, dict[str, float | int]]]:
+    """(rows, metrics): the episodes.csv rows of seeds `first_seed .. first_seed + episodes - 1` in seed order
+    (one per seed), and their `summarize`d metrics. Rows of other seeds in the file are left out."""
+    wanted = range(first_seed, first_seed + episodes)
+    by_seed = {int(r["seed"]): r for r in read_csv(Path(eval_dir) / "episodes.csv") if int(r["seed"]) in wanted}
+    rows = [by_seed[s] for s in sorted(by_seed)]
+    return rows, summarize(rows, confidence)
+
+
+def scenario_hash(config: Mapping[str, Any]) -> str:
+    """sha256 of what makes the episodes themselves (net, simulation, scenario, drivers, observation), leaving out
+    what policies may differ in when compared: the reward (the SVO angle) and who drives the AVs."""
+    kept = {k: v for k, v in config.items() if k not in ("train", "evaluate", "reward")}
+    kept["sim"] = {k: v for k, v in config.get("sim", {}).items() if k not in ("output_dir", "av_driver")}
+    return hashlib.sha256(json.dumps(kept, sort_keys=True, separators=(",", ":"), default=str).encode()).hexdigest()
+
+
+def config_hash(config: Mapping[str, Any]) -> str:
+    """sha256 of a resolved config (`Config.to_dict()`) as canonical JSON, over what shapes the episodes: not
+    `sim.output_dir` (where the folder is: a moved or copied evaluation still resumes), nor the `train` and
+    `evaluate` sections (how many episodes and workers; the policy is compared on its own)."""
+    kept = {k: v for k, v in config.items() if k not in ("train", "evaluate")}
+    kept["sim"] = {k: v for k, v in config.get("sim", {}).items() if k != "output_dir"}
+    text = json.dumps(kept, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def trajectory_files(out_dir: Path) -> list[Path]:
+    return sorted((out_dir / "trajectories").glob("seed_*.npz"), key=lambda p: int(p.stem.split("_")[1]))
+
+
+def load_trajectory(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path) as data:
+        return {k: data[k] for k in data.files}
+
+
+def run_name(phi: float, seed: int) -> str:
+    """A sweep run's folder under `runs/`."""
+    return f"phi_{phi:.4f}_seed_{seed}"
+
+
+def pooled(eval_dirs: Sequence[Path], first_seed: int, episodes: int) -> tuple[list[dict[str, str]], dict]:
+    """The evaluation rows of several folders (one per training seed), pooled, and their summary."""
+    wanted = range(first_seed, first_seed + episodes)
+    rows = [r for d in eval_dirs for r in read_csv(d / "episodes.csv") if int(r["seed"]) in wanted]
+    return rows, summarize(rows)
+
+
