@@ -10,31 +10,20 @@ twice) and purges TensorBoard events after it. `update(row)` and `episode(row)` 
 
 from __future__ import annotations
 
-import csv
-import io
 from collections import deque
 from pathlib import Path
 from typing import Any
 
 from torch.utils.tensorboard import SummaryWriter
 
-from cosim.files import AppendCsv, atomic_write_text
+from cosim.files import AppendCsv, read_csv, write_csv
 
 
 def cut_csv(path: Path, key: str, last: int) -> None:
     """Drop the rows of `path` whose `key` is above `last` (and half-written ones), atomically."""
-    if not path.is_file():
-        return
-    with path.open(newline="") as f:
-        rows = list(csv.reader(f))
-    if not rows or key not in rows[0]:
-        return
-    col = rows[0].index(key)
-    keep = [rows[0]] + [r for r in rows[1:] if len(r) == len(rows[0]) and r[col] and float(r[col]) <= last]
-    if len(keep) < len(rows):
-        buf = io.StringIO()
-        csv.writer(buf).writerows(keep)
-        atomic_write_text(path, buf.getvalue())
+    rows = read_csv(path)
+    if rows and key in rows[0]:
+        write_csv(path, [r for r in rows if r[key] and float(r[key]) <= last], list(rows[0]))
 
 
 class RunLogger:

@@ -1,11 +1,17 @@
-"""Shared pytest fixtures."""
+"""Shared pytest fixtures: a small merge net, and the check every env worker pool (local processes, Ray actors)
+must pass."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 
+from agents.fake_env import CueEnv
+from cosim.workers import StepResult
 from sumo_net.build import build_merge_net
 
 
@@ -14,3 +20,35 @@ def two_lane_net(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 2-lane merge net (80 m acceleration lane) built once per session; returns its .net.xml path."""
     out = tmp_path_factory.mktemp("two_lane_net")
     return build_merge_net(out, lanes=2, accel_length=80, upstream_length=100, downstream_length=500)
+
+
+def _delivers_exactly(pool: Any, dtype: str) -> list[StepResult]:
+    """Drive a 2-worker pool of `make_fake_env(n_agents=3, horizon=4, dtype=dtype)` through a whole episode
+    beside the same envs in this process, seeded alike: every observation, reward and final observation must
+    arrive bit for bit. Returns the last step's results."""
+    local = [CueEnv(n_agents=3, horizon=4, dtype=dtype) for _ in range(2)]
+    assert pool.obs.shape == (2, 3, 2, 4, 8, 16) and pool.obs.dtype == np.dtype(dtype)
+    assert pool.spec.max_steps == 4
+    pool.send_reset([0, 1], [11, 12])
+    pool.recv([0, 1])
+    want = [env.reset(seed=s)[0] for env, s in zip(local, (11, 12), strict=True)]
+    rng = np.random.default_rng(0)
+    for _ in range(4):
+        for w in range(2):
+            np.testing.assert_array_equal(pool.obs[w], np.stack([want[w][a] for a in local[w].possible_agents]))
+        actions = rng.choice([0, 2], size=(2, 3))
+        pool.send_step([0, 1], actions)
+        results = pool.recv([0, 1])
+        for w, res in enumerate(results):
+            want[w], rew, _, trunc, _ = local[w].step(dict(zip(local[w].possible_agents, actions[w].tolist(),
+                                                               strict=True)))
+            assert res.reward.tolist() == [rew[a] for a in local[w].possible_agents]
+            for i, a in enumerate(local[w].possible_agents):
+                if trunc[a]:  # truncated: the final observation is in the final slot
+                    np.testing.assert_array_equal(pool.final[w, i], want[w][a])
+    return results
+
+
+@pytest.fixture
+def delivers_exactly() -> Callable[[Any, str], list[StepResult]]:
+    return _delivers_exactly

@@ -1,31 +1,28 @@
-"""`cosim evaluate`: run trained AVs (a checkpoint) or a baseline on evaluation seeds; write CSV, JSON, plots.
+"""`cosim evaluate`: a policy's episodes on evaluation seeds, written as CSV, JSON and plots.
 
 Contract:
 - `evaluate(cfg, policy, out_dir, ...)` runs `episodes` episodes with seeds `seed, seed + 1, ...`; the
   default first seed, `cosim.config.EVAL_SEED_START` = 10,000,000, keeps evaluation disjoint from training,
-  whose episode seeds are drawn below it (`agents.train.episode_seed`). Policies: `checkpoint` (a trained
-  run; greedy argmax actions, or sampled), `sumo` (SUMO's own models drive the AVs: an all-human road),
-  `idle`, `random`, `scripted` (`cosim.environment.policies`).
-- Into `out_dir` go: `evaluation.json` (what was evaluated, with `config_sha256`, the hash of the resolved
-  config), `config.yaml` (the resolved config), `episodes.csv` (one row per episode, appended and flushed
-  as each finishes: the env's episode summary (`MergeEnv.episode_summary`: crash and crash by class, merge
-  and time to merge, distance and mean speed by class, the merging vehicle's distance, the guide AV and its
-  actions), SUMO's throughput [veh/h], time loss [s] and mean speed [m/s] over the flow window, and
-  `distance_check`, the largest |our odometer - SUMO's tripinfo routeLength| [m] over the episode's
-  vehicles), `summary.json` (each
-  metric's mean and interval, `cosim.evaluation.stats.summarize`, written atomically), `trajectories/seed_S.npz` for
-  the first `trajectories` episodes, `sumo/episode_S/` (SUMO's tripinfo and induction-loop files) and
-  `plots/`.
-- `summarize_evaluation(eval_dir, first_seed, episodes, confidence)` picks the rows of the requested seeds
-  from `episodes.csv` and summarises them: `evaluate` and `cosim compare` both report through it.
+  whose episode seeds are drawn below it (`agents.train.episode_seed`). A policy follows the `Policy`
+  protocol: `Baseline(name)` for `sumo` (SUMO's own models drive the AVs: an all-human road), `idle`,
+  `random`, `scripted`, `courteous` (`cosim.environment.policies`); trained ones come from `agents`
+  (`agents.checkpoint.TrainedPolicy`, `agents.sb3.Sb3Policy`) without this package importing them.
+- Into `out_dir` go: `evaluation.json` (what was evaluated: the policy's identity, `config_sha256`, the hash
+  of the resolved config, and `scenario_sha256`), `config.yaml` (the resolved config), `episodes.csv` (one
+  row per episode, appended and flushed as each finishes: the env's episode summary (crash and crash by class
+  and cause, merge and time to merge, distance and mean speed by class, the merging vehicle's distance, the
+  guide AV and its actions), SUMO's throughput [veh/h], time loss [s] and mean speed [m/s] over the flow
+  window, and `distance_check`, the largest |our odometer - SUMO's tripinfo routeLength| [m] over the
+  episode's vehicles), `summary.json` (each metric's mean and interval over the requested seeds,
+  `cosim.evaluation.store.summarize_evaluation`, written atomically), `trajectories/seed_S.npz` for the first
+  `trajectories` episodes, `sumo/episode_S/` (SUMO's tripinfo and induction-loop files) and `plots/`.
 - Resume: a second call with the same `out_dir` skips the seeds already in `episodes.csv`; a folder
   holding an evaluation of another policy / checkpoint / net / config (`config_sha256`; the folder's
   location, `sim.output_dir`, is not part of it) is refused.
 - `workers > 1` runs episodes on `cosim.workers.WorkerPool` (libsumo runs one simulation per process); an
   episode whose worker failed is played again by its replacement.
-- Bad input raises a `CosimError`: episodes or workers < 1 or trajectories < 0 (a `ConfigError`), no
-  checkpoint in the run folder, a checkpoint whose observation shape or agents do not fit the net/preset,
-  a net without a merge (from the net description).
+- Bad input raises a `CosimError`: episodes or workers < 1 or trajectories < 0 (a `ConfigError`), a
+  checkpoint whose observation shape or agents do not fit the net/preset, a net without a merge.
 """
 
 from __future__ import annotations
@@ -49,7 +46,6 @@ from cosim.environment.control import Action
 from cosim.environment.merge_env import MergeEnv
 from cosim.environment.policies import POLICIES
 from cosim.errors import ConfigError, CosimError
-from cosim.evaluation.stats import format_table
 from cosim.evaluation.store import config_hash, save_trajectory, scenario_hash, summarize_evaluation
 from cosim.files import AppendCsv, atomic_write_text, read_csv
 from cosim.progress import Heartbeat
@@ -293,9 +289,3 @@ def _claim(out_dir: Path, meta: dict[str, Any], cfg: Config) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out_dir / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False))
     atomic_write_text(path, json.dumps(meta, indent=2) + "\n")
-
-
-def print_summary(summary: Mapping[str, Any], label: str) -> None:
-    """The one print of the command: the summary table."""
-    print(format_table({label: summary["metrics"]}, {label: summary["episodes"]},
-                       confidence=summary.get("confidence", 0.95)))

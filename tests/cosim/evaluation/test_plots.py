@@ -10,6 +10,7 @@ from matplotlib.figure import Figure
 
 import cosim
 from cosim.environment.policies import POLICIES
+from cosim.environment.render import COLOURS as TOP_VIEW_COLOURS
 from cosim.environment.velocity_map import rasterize_road
 from cosim.evaluation import plots
 from cosim.sumo.roadnet import load_roadnet
@@ -55,13 +56,21 @@ def test_top_views_have_axis_labels_a_legend_and_a_title(merged_episode, figures
     assert all(ax.get_ylabel() == "y [m]" for ax in axes) and axes[-1].get_xlabel().startswith("x [m]")
     legend = axes[0].get_legend()
     assert legend is not None and [t.get_text() for t in legend.get_texts()] == ["AV", "HV", "merging vehicle",
-                                                                                  "guide AV"]
+                                                                                  "guide AV", "crashed"]
+    # Each view is the renderer's image, in network coordinates, with the merging vehicle drawn in its colour.
+    merger_rgb = np.asarray(TOP_VIEW_COLOURS[KIND_MERGER], dtype=np.uint8)
+    for ax in axes:
+        (image,) = ax.get_images()
+        assert (np.asarray(image.get_array())[..., :3] == merger_rgb).all(axis=-1).any()
+        x0, x1, _, _ = image.get_extent()
+        assert x1 - x0 == pytest.approx(220.0, abs=2.0)  # the 2 x 110 m window
 
 
 def test_time_space_lines_are_continuous_through_the_junction(merged_episode, figures, tmp_path: Path) -> None:
     plots.time_space(merged_episode, tmp_path / "ts.png")
     (fig,) = figures
-    merger = [line for line in fig.axes[0].lines if line.get_linewidth() > 2 and line.get_color() == "tab:purple"]
+    merger = [line for line in fig.axes[0].lines
+              if line.get_linewidth() > 2 and line.get_color() == plots.COLORS[KIND_MERGER]]
     (line,) = merger
     t, s = (np.asarray(a, float) for a in line.get_data())
     # The merging vehicle goes from the ramp through the junction onto the highway: no gap, no jump back.

@@ -16,7 +16,7 @@ from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER
 
 pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 AV = AVConfig(speed_step=2.0, max_speed=30.0)
 
 

@@ -15,7 +15,7 @@ from sumo_net.build import build_merge_net, run_netconvert
 
 pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
-DEFAULT_NET = Path(__file__).resolve().parents[2] / "sumo_net" / "merge" / "merge.net.xml"
+DEFAULT_NET = Path(__file__).resolve().parents[3] / "sumo_net" / "merge" / "merge.net.xml"
 
 
 def test_two_lane_variant_has_expected_lanes_and_lengths(two_lane_net: Path) -> None:
