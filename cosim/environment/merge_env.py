@@ -12,7 +12,7 @@ egoistic AV gains nothing from keeping the episode alive. With `on_collision: re
 taken off the road after the decision step and the episode goes on. Every collision is attributed (kind,
 fault, cause: `cosim.environment.collisions`) in the episode summary.
 On the last step every agent's info carries `"episode"`, the episode's summary: the row of the
-`cosim.evaluation.stats.EpisodeTracker` the env feeds every snapshot (`env.tracker`), with the seed and whether the
+`cosim.environment.tracker.EpisodeTracker` the env feeds every snapshot (`env.tracker`), with the seed and whether the
 merge failed. Observations are read-only views valid until the next step.
 
 `step` is a template of small hooks: act -> simulate -> snapshot -> observe -> reward -> end.

@@ -9,7 +9,7 @@ ones read the env's public snapshot and net geometry (they are baselines, not le
   it in the lane it must enter (up to `reach` m behind) while it has not merged: that AV moves one lane
   left where the left lane has room, else slows down below the merging vehicle's speed so that a gap opens
   in front of it.
-Positions are chainages along the highway (`cosim.evaluation.stats.Chainage`), so leaders on the next edge count.
+Positions are chainages along the highway (`cosim.sumo.net.Chainage`), so leaders on the next edge count.
 """
 
 from __future__ import annotations

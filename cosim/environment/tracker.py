@@ -1,4 +1,15 @@
-"""TRACKER DOC"""
+"""One episode's bookkeeping from its snapshots: the row `episodes.csv` gets, and trajectories for plots.
+
+Contract:
+- `guide_av(snap)` is the AV nearest (centre to centre) to the merging vehicle, or None.
+- `EpisodeTracker(zone, chainage)` is fed every snapshot of an episode (`observe(snap, actions, status)`,
+  the reset snapshot first) and gives the episode's row (`row()`): its length in decision steps, crash
+  (any, by class and by cause), merge success (`cosim.environment.episode.merge_status`, the env's definition)
+  and time to merge, distance [m] and mean speed [m/s] by class (over every vehicle seen), the merging
+  vehicle's distance, the guide AV (nearest the merging vehicle when it merges, else at its last appearance)
+  and the guide's actions. `MergeEnv` owns one (its `infos["episode"]` summary is its row); with
+  `record=True` it also keeps per-step trajectories (`trajectory()`) for plots.
+"""
 
 from __future__ import annotations
 

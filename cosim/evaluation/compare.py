@@ -6,10 +6,10 @@ Contract: `compare(dirs, out_dir, labels)` takes evaluation folders (written by 
 merging vehicle's distance, overlaid), `training_curves.png` (when a run folder has the trainer's
 `episodes.csv`), per run `LABEL/` with the time-space diagrams, guide-AV speed profiles and top views of
 its recorded episodes, `summary.json` / `summary.csv` (all runs' metrics) and `report.md` (the table and
-the figures). Each run is summarised from its `episodes.csv` by `cosim.evaluation.runner.summarize_evaluation`
+the figures). Each run is summarised from its `episodes.csv` by `cosim.evaluation.store.summarize_evaluation`
 over the seeds its `summary.json` names, as `cosim evaluate` did: rows of other seeds in the file are
-left out. `plot_run(eval_dir, plots_dir, label, rows)` draws one evaluation's own figures (used by
-`cosim evaluate` too). A folder without an evaluation raises `CosimError`.
+left out; each run's own figures are `cosim.evaluation.plots.plot_evaluation`'s, as `cosim evaluate` draws
+them. A folder without an evaluation raises `CosimError`.
 """
 
 from __future__ import annotations

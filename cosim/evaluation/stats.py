@@ -1,4 +1,4 @@
-"""Evaluation metrics: per-episode bookkeeping from snapshots, and summaries with confidence intervals (pure).
+"""Statistics of evaluations: intervals, summaries and tables over per-episode rows (pure; scipy does the math).
 
 Contract:
 - `mean_ci(values, confidence)` is the mean with a two-sided Student-t interval over the finite values
@@ -8,18 +8,8 @@ Contract:
   collapse to [0, 0] when no episode crashed); it is defined from one value on. `summarize(rows)` applies
   `rate_ci` to the rates of `RATE_METRICS` (crash %, merge success %) and `mean_ci` to every other metric
   of `SUMMARY_METRICS`, over per-episode rows (dicts, as written to `episodes.csv`).
-- `Chainage.from_net(desc, road)` places every highway and ramp edge on one longitudinal axis [m]: highway
-  edges at their start's distance from the first highway edge's start, ramp edges so that the ramp's end
-  meets the merge edge's start. `Chainage.of(snap)` is each vehicle's front bumper on that axis (NaN on
-  junction-internal and foreign edges).
-- `guide_av(snap)` is the AV nearest (centre to centre) to the merging vehicle, or None.
-- `EpisodeTracker(zone, chainage)` is fed every snapshot of an episode (`observe(snap, actions, status)`,
-  the reset snapshot first) and gives the episode's row (`row()`): its length in decision steps, crash
-  (any, and by class), merge success (`cosim.environment.episode.merge_status`, the env's definition) and time to
-  merge, distance [m] and mean speed [m/s] by class (over every vehicle seen), the merging vehicle's
-  distance, the guide AV (nearest the merging vehicle when it merges, else at its last appearance) and the
-  guide's actions. `MergeEnv` owns one (its `infos["episode"]` summary is its row); with `record=True` it
-  also keeps per-step trajectories (`trajectory()`) for plots.
+- `rate(rows, column)` is one 0/1 column as a percentage with its Wilson interval; `finite(rows, column)` and
+  `median(rows, column)` read one numeric column; `format_table` prints summaries side by side.
 """
 
 from __future__ import annotations
