@@ -39,6 +39,7 @@ from cosim.workers import (
     StepResult,
     WorkerFailure,
     _EnvRunner,
+    agreed_spec,
 )
 
 log = logging.getLogger(__name__)
@@ -164,10 +165,7 @@ class RayWorkerPool(PoolCommands):
             self.actors = [self._actor_cls.remote(env_factory, self.pool_id) for _ in range(workers)]
             starts = [actor.start.remote() for actor in self.actors]
             self.pids = [0] * workers
-            specs = [self._ready(w, starts[w]) for w in range(workers)]
-            if any(s != specs[0] for s in specs):
-                raise SimulationError(f"rollout actors built envs with different specs: {set(specs)}")
-            self.spec: EnvSpec = specs[0]
+            self.spec: EnvSpec = agreed_spec([self._ready(w, starts[w]) for w in range(workers)], "rollout actors")
             shape = (workers, len(self.spec.agents), *self.spec.obs_shape)
             self.obs = np.zeros(shape, self.spec.obs_dtype)
             self.final = np.zeros(shape, self.spec.obs_dtype)

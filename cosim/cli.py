@@ -26,7 +26,7 @@ from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
 from cosim.config import EVAL_SEED_START
-from cosim.errors import ConfigError, CosimError
+from cosim.errors import ConfigError, CosimError, check_at_least
 
 log = logging.getLogger("cosim")
 
@@ -54,9 +54,7 @@ def _backend_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _positive(args: argparse.Namespace, *names: str, least: int = 1) -> None:
     for name in names:
-        value = getattr(args, name.replace("-", "_"))
-        if value is not None and value < least:
-            raise ConfigError(f"--{name}: must be >= {least}, got {value}")
+        check_at_least(f"--{name}", getattr(args, name.replace("-", "_")), least)
 
 
 # -- build-net -----------------------------------------------------------------------------------------

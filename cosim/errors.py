@@ -15,3 +15,9 @@ class NetError(CosimError):
 
 class SimulationError(CosimError):
     """SUMO failed to start, crashed, or a second simulation was requested in one process."""
+
+
+def check_at_least(name: str, value: float | None, least: float) -> None:
+    """`ConfigError` naming `name` (a key or a flag) unless `value` is None or >= `least`."""
+    if value is not None and value < least:
+        raise ConfigError(f"{name}: must be >= {least}, got {value}")

@@ -186,6 +186,13 @@ def _map(path: str, shape: tuple[int, ...], dtype: str, mode: str) -> np.ndarray
     return np.memmap(path, dtype=dtype, mode=mode, shape=shape)
 
 
+def agreed_spec(specs: Sequence[EnvSpec], who: str) -> EnvSpec:
+    """The one spec every worker's env reported; `SimulationError` when they differ."""
+    if any(s != specs[0] for s in specs):
+        raise SimulationError(f"{who} built envs with different specs: {set(specs)}")
+    return specs[0]
+
+
 class WorkerFailure(Exception):
     """A worker's env raised, its process died, or it stayed silent (internal: the pool replaces it)."""
 
@@ -264,10 +271,8 @@ class WorkerPool(PoolCommands):
         try:
             for w in range(workers):
                 self.workers.append(self._start(w))
-            specs = [self._recv_spec(w) for w in range(workers)]  # the env factories run in parallel
-            if any(s != specs[0] for s in specs):
-                raise SimulationError(f"rollout workers built envs with different specs: {set(specs)}")
-            self.spec: EnvSpec = specs[0]
+            # the env factories run in parallel
+            self.spec: EnvSpec = agreed_spec([self._recv_spec(w) for w in range(workers)], "rollout workers")
             shape = (workers, len(self.spec.agents), *self.spec.obs_shape)
             self.obs = self._shared(shape)  # (W, N, F, C, H, W)
             self.final = self._shared(shape)

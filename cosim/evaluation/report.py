@@ -20,13 +20,13 @@ from scipy.stats import mannwhitneyu
 
 from cosim.config import EVAL_SEED_START, load_config
 from cosim.evaluation import plots
-from cosim.evaluation.stats import finite, format_table, median, rate, summarize
+from cosim.evaluation.stats import RATE_METRICS, SUMMARY_METRICS, finite, format_table, median, rate, summarize
 from cosim.evaluation.store import pooled, run_name
 from cosim.files import atomic_write_text
 from cosim.sumo.net import load_net
 
-RATES = {"crash [%]": "crashed", "crash, AV at fault [%]": "cause_av", "crash, HV into AV [%]": "cause_hv_into_av",
-         "crash, merging vehicle [%]": "cause_merger", "merge success [%]": "merged"}
+# Rate label -> its episodes.csv column, in the summary table's order (crash, crash by cause, merge success).
+RATES = {label: column for label, (column, _) in SUMMARY_METRICS.items() if label in RATE_METRICS}
 FLOW = ("throughput [veh/h]", "time loss [s]")
 EGOISTIC, ALTRUISTIC = 0.0, math.pi / 4  # [rad] the paper's two SVO angles
 

@@ -45,7 +45,7 @@ from cosim.config import EVAL_SEED_START, Config, load_config
 from cosim.environment.control import Action
 from cosim.environment.merge_env import MergeEnv
 from cosim.environment.policies import POLICIES
-from cosim.errors import ConfigError, CosimError
+from cosim.errors import ConfigError, CosimError, check_at_least
 from cosim.evaluation.store import config_hash, save_trajectory, scenario_hash, summarize_evaluation
 from cosim.files import AppendCsv, atomic_write_text, read_csv
 from cosim.progress import Heartbeat
@@ -60,8 +60,7 @@ EPISODE_TIMEOUT = 600.0  # [s] a worker silent for longer than an episode could 
 def check_counts(episodes: int, workers: int, trajectories: int, prefix: str = "") -> None:
     """`ConfigError` unless episodes >= 1, workers >= 1 and trajectories >= 0 (`prefix`: e.g. "--" for flags)."""
     for name, value, least in (("episodes", episodes, 1), ("workers", workers, 1), ("trajectories", trajectories, 0)):
-        if value < least:
-            raise ConfigError(f"{prefix}{name}: must be >= {least}, got {value}")
+        check_at_least(prefix + name, value, least)
 
 
 # -- policies ------------------------------------------------------------------------------------------

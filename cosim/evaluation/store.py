@@ -52,10 +52,15 @@ def summarize_evaluation(eval_dir: Path, first_seed: int, episodes: int,
                          confidence: float = 0.95) -> tuple[list[dict[str, str]], dict[str, dict[str, float | int]]]:
     """(rows, metrics): the episodes.csv rows of seeds `first_seed .. first_seed + episodes - 1` in seed order
     (one per seed), and their `summarize`d metrics. Rows of other seeds in the file are left out."""
+    rows = seed_rows(eval_dir, first_seed, episodes)
+    return rows, summarize(rows, confidence)
+
+
+def seed_rows(eval_dir: Path, first_seed: int, episodes: int) -> list[dict[str, str]]:
+    """The episodes.csv rows of seeds `first_seed .. first_seed + episodes - 1`, one per seed, in seed order."""
     wanted = range(first_seed, first_seed + episodes)
     by_seed = {int(r["seed"]): r for r in read_csv(Path(eval_dir) / "episodes.csv") if int(r["seed"]) in wanted}
-    rows = [by_seed[s] for s in sorted(by_seed)]
-    return rows, summarize(rows, confidence)
+    return [by_seed[s] for s in sorted(by_seed)]
 
 
 def scenario_hash(config: Mapping[str, Any]) -> str:
@@ -92,8 +97,7 @@ def run_name(phi: float, seed: int) -> str:
 
 def pooled(eval_dirs: Sequence[Path], first_seed: int, episodes: int) -> tuple[list[dict[str, str]], dict]:
     """The evaluation rows of several folders (one per training seed), pooled, and their summary."""
-    wanted = range(first_seed, first_seed + episodes)
-    rows = [r for d in eval_dirs for r in read_csv(d / "episodes.csv") if int(r["seed"]) in wanted]
+    rows = [r for d in eval_dirs for r in seed_rows(d, first_seed, episodes)]
     return rows, summarize(rows)
 
 
