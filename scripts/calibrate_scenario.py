@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -90,7 +91,7 @@ def main() -> None:
              "| target | mean [95% CI] | met |", "|---|---|---|"]
     lines += [f"| {v['policy']}: {v['metric']} {v['target']} | {v['mean']:.1f} [{v['ci'][0]:.1f}, {v['ci'][1]:.1f}] "
               f"| {'yes' if v['met'] else 'NO'} |" for v in verdicts]
-    incentives = [returns_under(args, overrides, phi, walls) for phi in args.phis]
+    incentives = [returns_under(args, overrides, phi, walls, cfg.reward.phi) for phi in args.phis]
     if incentives:
         others = list(incentives[0]["courteous_minus"])
         lines += ["", "AVs' mean return under the SVO reward (undiscounted, per episode), and courteous minus each "
@@ -120,16 +121,20 @@ def main() -> None:
     print("\n".join(lines))
 
 
-def returns_under(args: argparse.Namespace, overrides: list[str], phi: float, walls: dict[str, float]) -> dict:
+def returns_under(args: argparse.Namespace, overrides: list[str], phi: float, walls: dict[str, float],
+                  config_phi: float) -> dict:
     """Every policy's per-episode AV return with the reward at `phi`, and courteous minus each other, paired."""
     cfg = load_config(args.config, [*overrides, f"reward.phi={phi}"])
+    # The config's own angle was scored by the merge-rate table's episodes: the same seeds, the same reward.
+    own = math.isclose(phi, config_phi)
     returns = {}
     for name in args.policies:
-        out = args.out / f"returns_phi_{phi:.4f}" / name
-        t0 = time.perf_counter()
-        evaluate(cfg, Baseline(name), out, episodes=args.episodes, seed=args.seed, workers=args.workers,
-                 trajectories=0, plots=False)
-        walls[f"{name} at phi {phi:.4f}"] = time.perf_counter() - t0
+        out = args.out / name if own else args.out / f"returns_phi_{phi:.4f}" / name
+        if not own:
+            t0 = time.perf_counter()
+            evaluate(cfg, Baseline(name), out, episodes=args.episodes, seed=args.seed, workers=args.workers,
+                     trajectories=0, plots=False)
+            walls[f"{name} at phi {phi:.4f}"] = time.perf_counter() - t0
         returns[name] = np.array([float(r["av_return"]) for r in seed_rows(out, args.seed, args.episodes)])
     minus = {} if "courteous" not in returns else {
         p: mean_ci(returns["courteous"] - r).as_dict() for p, r in returns.items() if p != "courteous"}
