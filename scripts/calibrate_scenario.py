@@ -9,8 +9,9 @@ continues where it stopped) and writes `OUT/calibration.md` (the table and the v
 at most 60% of the time; courteous AVs at least 90%, crashing at most 10%; scripted AVs crash at most 15% (a
 careful policy avoids the crashes: they do not come from the placement); SUMO-driven AVs never crash.
 
-The dilemma in reward terms: the same baselines on the same seeds are scored again under the SVO reward of
-each `--phis` angle (the AVs' mean undiscounted return, `av_return`), and each other baseline's return is
+The dilemma in reward terms: the same baselines on the same seeds are scored under the SVO reward of each
+`--phis` angle (the AVs' mean undiscounted return, `av_return`; the config's own angle from the episodes
+above, every other one by running them again), and each other baseline's return is
 compared with the gap-opening `courteous` one episode by episode (paired differences, 95% t-intervals). A
 dilemma needs courteous AVs to earn less than another baseline when egoistic (phi = 0: letting the merging
 vehicle in costs them) and more than every other one when altruistic (phi = pi/4: it pays).
