@@ -88,7 +88,7 @@ def _collision(s: StepChange) -> np.ndarray:
 # +10 as in the authors' follow-up code. With +2, letting the merging vehicle in lowered the guide AV's own
 # discounted return at phi = pi/4 (courteous 41.5 vs scripted 42.3 over 60 episodes); with +10 it raises it
 # (45.3 vs 42.8). Against SUMO-driven AVs, though, gap-opening ones earn no more with +10, so the default scenario
-# sets 30 (configs/default.yaml, results/calibration/merge_weight.md).
+# sets 50 (configs/default.yaml, results/calibration/merge_weight.md).
 @term("merge", 10.0)
 def _merge(s: StepChange) -> np.ndarray:
     return s.merged_now.astype(np.float64)
