@@ -4,7 +4,9 @@ Contract:
 - `save_checkpoint(path, payload)` writes via a temp file in the same folder and `os.replace`, so a
   crash mid-write leaves the previous checkpoint intact; beside it goes `policy.pt`, the trained networks
   with their spec, counters and config but without optimizer, acting copies or RNG states: a few MB for
-  evaluation and sharing, where the resumable checkpoint is several times that.
+  evaluation and sharing, where the resumable checkpoint is several times that. Both are written in full
+  before either is replaced; a failed write (a full disk) is a `CheckpointError` naming the file and the
+  reason, with the previous pair left as it was.
 - `read_checkpoint(path, expect=...)` returns the payload, or raises `CheckpointError` (a
   `cosim.errors.CosimError`) naming the file when it is missing, unreadable, not ours, or incompatible
   with the expected obs shape / dtype / number of agents / policy layout.
@@ -47,13 +49,38 @@ class CheckpointError(CosimError):
 
 
 def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
-    """The resumable checkpoint at `path`, then the policy-only file beside it (`POLICY_NAME`)."""
-    with atomic_path(path) as tmp:
-        torch.save({"format": FORMAT, "version": VERSION, **payload}, tmp)
+    """The resumable checkpoint at `path` and the policy-only file beside it (`POLICY_NAME`), both written in
+    full before either replaces its old one, so that they stay a pair; `CheckpointError` naming the file when a
+    write fails (a full disk), the previous pair left as it was."""
     small = {"format": POLICY_FORMAT, "version": VERSION, "nets": payload["policy"]["nets"],
              **{k: payload[k] for k in ("spec", "counters", "train", "config", "phis") if k in payload}}
-    with atomic_path(path.with_name(POLICY_NAME)) as tmp:
-        torch.save(small, tmp)
+    try:
+        with atomic_path(path) as tmp, atomic_path(path.with_name(POLICY_NAME)) as small_tmp:
+            _save({"format": FORMAT, "version": VERSION, **payload}, tmp)
+            _save(small, small_tmp)
+    except OSError as exc:
+        kept = (f"the previous checkpoint ({path.name}, {POLICY_NAME}) is unchanged" if path.is_file()
+                else "no checkpoint was written")
+        raise CheckpointError(f"checkpoint {exc.filename or path}: cannot write it ({exc.strerror or exc}); "
+                              f"{kept}") from None
+
+
+def _save(obj: Any, path: Path) -> None:
+    """`torch.save` into `path`; a failed write (a full disk) is an OSError naming `path`."""
+    # Through a file of ours: a failed write is then the context of the RuntimeError that torch's zip writer
+    # raises (given a path, torch leaves only "iostream error"), and it comes out as the OSError it is.
+    try:
+        with open(path, "wb") as f:
+            torch.save(obj, f)
+    except RuntimeError as exc:
+        cause = exc.__context__
+        while cause is not None and not isinstance(cause, OSError):
+            cause = cause.__context__
+        if cause is None:
+            raise
+        raise OSError(cause.errno, cause.strerror or str(cause), str(path)) from None
+    except OSError as exc:  # the last buffered bytes, written at close
+        raise OSError(exc.errno, exc.strerror or str(exc), exc.filename or str(path)) from None
 
 
 def read_checkpoint(path: Path, expect: dict[str, Any] | None = None) -> dict[str, Any]:

@@ -28,7 +28,10 @@ def train_config(source: Config | TrainConfig | Mapping[str, Any] | None) -> Tra
 
 
 def use_bf16(precision: str, device: str) -> bool:
-    """Whether training runs its forward passes in bfloat16 (see `TrainConfig.precision`)."""
+    """Whether training runs its forward passes in bfloat16 (see `TrainConfig.precision`): with `auto`, on a CPU
+    whose flags (those `lscpu` lists, from /proc/cpuinfo) include `amx_bf16` or `avx512_bf16`, and on a GPU that
+    supports it. bfloat16 kernels are not reproducible bit for bit run to run; float32 is, on the same machine
+    and thread count (README)."""
     if precision != "auto":
         return precision == "bfloat16"
     if device.startswith("cuda"):

@@ -8,13 +8,16 @@ optimal policy is learnable from the observation. Accelerate (3) "crashes" the a
 terminated. Agents still running at `horizon` steps are truncated. Infos carry `reward_terms` and, on
 the last step, `episode`. `fail_once_file` makes the env fail once (across processes) at step
 `fail_at_step`, to test worker restarts: raise `SimulationError`, or with `fail_by_exit` end its process
-(as a SUMO crash does). `make_fake_env(**kw)` is a picklable env factory.
+(as a SUMO crash does). `step_sleep` [s] makes each step take that long (a slow simulation).
+`make_fake_env(**kw)` is a picklable env factory; `play_episode(env, seed)` plays one episode for
+`WorkerPool.send_call`, with a `keep_alive` beat each step as evaluation's episodes do.
 """
 
 from __future__ import annotations
 
 import functools
 import os
+import time
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +26,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from cosim.errors import SimulationError
+from cosim.workers import keep_alive
 
 _HIGH = {"float32": 1.0, "float16": 1.0, "uint8": 255}
 
@@ -32,7 +36,8 @@ class CueEnv(ParallelEnv):
 
     def __init__(self, n_agents: int = 2, obs_shape: tuple[int, int, int, int] = (2, 4, 8, 16),
                  dtype: str = "float32", horizon: int = 8, fail_once_file: str | None = None,
-                 fail_at_step: int = 3, fail_by_exit: bool = False, render_mode: str | None = None) -> None:
+                 fail_at_step: int = 3, fail_by_exit: bool = False, step_sleep: float = 0.0,
+                 render_mode: str | None = None) -> None:
         self.possible_agents = [f"av_{i}" for i in range(n_agents)]
         self.agents: list[str] = []
         self.render_mode = render_mode
@@ -41,6 +46,7 @@ class CueEnv(ParallelEnv):
         self.fail_once_file = fail_once_file
         self.fail_at_step = fail_at_step
         self.fail_by_exit = fail_by_exit
+        self.step_sleep = step_sleep
         self._high = _HIGH[dtype]
         self._obs_space = spaces.Box(0, self._high, shape=tuple(obs_shape), dtype=np.dtype(dtype))
         self._act_space = spaces.Discrete(5)
@@ -84,6 +90,7 @@ class CueEnv(ParallelEnv):
 
     def step(self, actions: dict[str, int]) -> tuple[dict, dict, dict, dict, dict]:
         self._t += 1
+        time.sleep(self.step_sleep)
         if self.fail_once_file and self._t == self.fail_at_step:
             try:
                 Path(self.fail_once_file).open("x").close()  # exclusive create: one process fails, once
@@ -123,3 +130,14 @@ class CueEnv(ParallelEnv):
 def make_fake_env(**kwargs: Any) -> functools.partial[CueEnv]:
     """A picklable env factory for `WorkerPool` / `train(env_factory=...)`."""
     return functools.partial(CueEnv, **kwargs)
+
+
+def play_episode(env: CueEnv, seed: int) -> int:
+    """One episode of lane-left actions (a `WorkerPool.send_call` function); returns its length in steps."""
+    env.reset(seed=seed)
+    steps = 0
+    while env.agents:
+        env.step(dict.fromkeys(env.agents, 0))
+        steps += 1
+        keep_alive()
+    return steps

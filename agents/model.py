@@ -2,9 +2,11 @@
 
 Contract: `ActorCritic(obs_shape, n_actions)` takes observations shaped like the env's observation space,
 `(B, F, C, H, W)` (F stacked frames, C channels), of dtype float32, float16 or uint8 (uint8 is scaled by
-1/255), and returns action logits `(B, n_actions)` and state values `(B,)`. Frames are Conv3D's depth axis
-and channels its channels. The flatten size follows from the observation shape by a dummy forward, so the
-paper preset (10, 4, 64, 512) and the CPU default (5, 4, 32, 128) build from the same code.
+1/255), and returns action logits `(B, n_actions)` and state values `(B,)`, float32. With `bf16` the forward
+runs in bfloat16 autocast: weights and outputs stay float32, the outputs off float32's by about 1% of their
+scale, and not reproducible bit for bit run to run on CPUs with bfloat16 instructions. Frames are Conv3D's
+depth axis and channels its channels. The flatten size follows from the observation shape by a dummy forward,
+so the paper preset (10, 4, 64, 512) and the CPU default (5, 4, 32, 128) build from the same code.
 """
 
 from __future__ import annotations

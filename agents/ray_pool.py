@@ -10,21 +10,23 @@ process dies (SUMO crash, node lost) or that stays silent for `timeout` seconds 
 (`ray.kill(..., no_restart=False)` where it is still there), logged, and its result is `lost`; more than
 `max_restarts` failures, or an env that fails to start `START_ATTEMPTS` times in a row, raise
 `SimulationError`; `ConfigError` / `NetError` reach the caller as they are. Ray is imported here only, and
-this module only where `--backend ray` is asked for: the local backend needs no Ray.
+this module only where `--backend ray` is asked for: the local backend needs no Ray. `connect` (the pool's
+and the sweep's way into Ray) leaves the process's SIGINT and SIGTERM handlers as it found them.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import logging
 import os
 import shutil
+import signal
 import socket
 import tempfile
+import threading
 import time
-import uuid
-from collections.abc import Sequence
-from pathlib import Path
+from collections.abc import Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -40,6 +42,8 @@ from cosim.workers import (
     WorkerFailure,
     _EnvRunner,
     agreed_spec,
+    remove_leftovers,
+    run_folder,
 )
 
 log = logging.getLogger(__name__)
@@ -53,6 +57,23 @@ def _import_ray() -> Any:
     return ray
 
 
+@contextlib.contextmanager
+def keep_signal_handlers() -> Iterator[None]:
+    """The SIGINT and SIGTERM handlers of before, restored on leaving. `ray.init` installs a SIGTERM handler of
+    its own (`sys.exit(15)`) that outlives `ray.shutdown`: in its place, a SIGTERM would end `cosim train`
+    without its stop after the update in progress, its checkpoint and exit 130."""
+    if threading.current_thread() is not threading.main_thread():  # no handlers there, Ray's neither
+        yield
+        return
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            if handler is not None:  # None: a handler set outside Python, which Python cannot put back
+                signal.signal(sig, handler)
+
+
 def connect(address: str | None, cpus: int) -> tuple[Any, bool]:
     """Ray, joined to the cluster at `address` or (None) to a local Ray started here with this machine's CPUs,
     or `cpus` logical ones where that is more (more rollout workers than cores wait on SUMO, as local worker
@@ -62,8 +83,9 @@ def connect(address: str | None, cpus: int) -> tuple[Any, bool]:
     if ray.is_initialized():
         return ray, False
     if address is None:
-        ray.init(num_cpus=max(os.cpu_count() or 1, cpus), include_dashboard=False, log_to_driver=False,
-                 logging_level=logging.WARNING)
+        with keep_signal_handlers():
+            ray.init(num_cpus=max(os.cpu_count() or 1, cpus), include_dashboard=False, log_to_driver=False,
+                     logging_level=logging.WARNING)
         return ray, True
     host, _, port = address.rpartition(":")
     host = host.strip("[]")  # an IPv6 address
@@ -74,34 +96,24 @@ def connect(address: str | None, cpus: int) -> tuple[Any, bool]:
             raise ConfigError(f"--ray-address {address}: cannot reach it ({exc}); start a cluster there with `ray "
                               "start --head`, or leave out --ray-address for a local Ray") from None
     try:
-        ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
+        with keep_signal_handlers():
+            ray.init(address=address, log_to_driver=False, logging_level=logging.WARNING)
     except ConnectionError as exc:
         raise ConfigError(f"--ray-address {address}: no Ray cluster there ({exc}); start one with `ray start "
                           "--head`, or leave out --ray-address for a local Ray") from None
     return ray, True
 
 
-def _remove_dead_actor_folders(pool_id: str) -> None:
-    """Remove the temporary folders, on this machine, of the pool's actors whose process is gone."""
-    for folder in Path(tempfile.gettempdir()).glob(f"cosim_actor_{pool_id}_*"):
-        pid = int(folder.name.split("_")[3])
-        try:
-            os.kill(pid, 0)
-        except ProcessLookupError:
-            shutil.rmtree(folder, ignore_errors=True)
-        except PermissionError:  # alive, another user's
-            pass
-
-
 class _EnvActor:
     """One env in an actor process. A failure to build the env is kept and returned by `start`, so that the
     driver sees the env's own exception (Ray would otherwise report only that the actor died)."""
 
-    def __init__(self, env_factory: EnvFactory, pool_id: str) -> None:
-        # The env's temporary files go into a folder of this actor, removed by `close`; an actor that died
-        # (killed, SUMO crash) never got there, so each new one removes the folders of the pool's dead actors.
-        _remove_dead_actor_folders(pool_id)
-        self.tmp = tempfile.mkdtemp(prefix=f"cosim_actor_{pool_id}_{os.getpid()}_")
+    def __init__(self, env_factory: EnvFactory) -> None:
+        # The env's temporary files go into this actor process's folder, removed by `close`; an actor that died
+        # (killed, SUMO crash) never got there: the folder names its process, and the next actor or pool
+        # started on that machine removes it (`cosim.workers.remove_leftovers`).
+        remove_leftovers()
+        self.tmp = str(run_folder())
         tempfile.tempdir = self.tmp
         self.error: Exception | None = None
         self.runner: _EnvRunner | None = None
@@ -149,9 +161,9 @@ class RayWorkerPool(PoolCommands):
         self.timeout = timeout
         self.restarts = 0
         self.actors: list[Any] = []
-        self.pool_id = uuid.uuid4().hex[:12]  # names the actors' temporary folders
         self.pids: list[int] = []
         self._pending: dict[int, Any] = {}
+        remove_leftovers()  # what killed runs left on this machine; each actor does the same on its own
         self.ray, self._started_ray = connect(address, workers)
         ray = self.ray
         cpus = ray.cluster_resources().get("CPU", 0)
@@ -162,7 +174,7 @@ class RayWorkerPool(PoolCommands):
         # Ray restarts a dead actor by itself; this pool counts the failures against max_restarts.
         self._actor_cls = ray.remote(num_cpus=1, max_restarts=-1, max_task_retries=0)(_EnvActor)
         try:
-            self.actors = [self._actor_cls.remote(env_factory, self.pool_id) for _ in range(workers)]
+            self.actors = [self._actor_cls.remote(env_factory) for _ in range(workers)]
             starts = [actor.start.remote() for actor in self.actors]
             self.pids = [0] * workers
             self.spec: EnvSpec = agreed_spec([self._ready(w, starts[w]) for w in range(workers)], "rollout actors")
@@ -284,7 +296,7 @@ class RayWorkerPool(PoolCommands):
                 except ray.exceptions.RayError:
                     pass
         self.actors = []
-        _remove_dead_actor_folders(self.pool_id)  # on this machine: all of them with a local Ray
+        remove_leftovers()  # on this machine, those of actors that died before their close
         if self._started_ray:
             ray.shutdown()
             self._started_ray = False

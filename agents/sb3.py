@@ -7,13 +7,15 @@ process of its own when there are several (libsumo allows one SUMO per process),
 `pettingzoo_env_to_vec_env_v1` makes the AVs sub-envs, so one network serves them all); copy i plays its own
 episode seeds, below the evaluation seeds. `ppo_kwargs(train_config)` sets SB3's PPO as `cosim train` is set, with
 `VelocityMapExtractor` (the paper's Conv3D stack) under its policy; a saved model loads by `load_actor(path)`
-as an actor with `ActorCritic.act`'s signature.
+as an actor with `ActorCritic.act`'s signature, and a file that is no SB3 model (cosim's own policy.pt, say) is a
+`ConfigError` naming it and what `--policy sb3` takes.
 """
 
 from __future__ import annotations
 
 import functools
 import hashlib
+import zipfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -113,8 +115,26 @@ class Sb3Actor:
         return np.asarray(actions, dtype=np.int64)
 
 
+def check_model_file(path: Path) -> None:
+    """`ConfigError` naming `path` unless it is a zip with SB3's `data` entry, as `model.save` writes it (SB3's
+    own load would fail on an assertion)."""
+    expected = "--policy sb3 takes a Stable-Baselines3 model, the .zip that scripts/train_sb3.py saves"
+    try:
+        with zipfile.ZipFile(path) as archive:
+            names = archive.namelist()
+    except (OSError, zipfile.BadZipFile):
+        raise ConfigError(f"--checkpoint {path}: not a zip file; {expected}") from None
+    if "data" not in names:
+        # torch.save writes a zip too, with ARCHIVE/data.pkl: most likely a policy.pt or checkpoint.pt of cosim's.
+        torch_file = any(n.endswith("/data.pkl") for n in names)
+        raise ConfigError(f"--checkpoint {path}: " + (
+            "a PyTorch file, not a Stable-Baselines3 model; for cosim's own policy.pt or checkpoint.pt use "
+            f"--policy checkpoint; {expected}" if torch_file else f"no Stable-Baselines3 model in it; {expected}"))
+
+
 def load_actor(path: Path, obs_shape: tuple[int, ...], n_actions: int) -> Sb3Actor:
     """A saved SB3 PPO model, checked against the scenario's observation shape and actions."""
+    check_model_file(path)
     try:
         model = PPO.load(path, device="cpu")
     except (OSError, ValueError, KeyError) as exc:

@@ -14,7 +14,8 @@ resumable: an interrupted sweep run again with the same arguments continues each
 from its checkpoint, each evaluation from its last finished episode, and skips what is complete. The exact
 command and each step's wall time go into the report. With `backend=Backend("ray")` each run is a Ray task
 (its rollout workers Ray actors), as many at once as the cluster has CPUs for; they finish in any order,
-and `out` must be on a file system that every machine of the cluster sees.
+and `out` must be on a file system that every machine of the cluster sees. One sweep at a time per `out`
+(`cosim.files.FolderLock`, as each of its runs and evaluations holds its own folder): a second is refused.
 """
 
 from __future__ import annotations
@@ -30,12 +31,12 @@ from typing import Any
 
 from agents.config import train_config
 from agents.rollout import Backend
-from cosim.config import EVAL_SEED_START, Config, load_config
+from cosim.config import EVAL_SEED_START, Config, check_seed, load_config
 from cosim.errors import ConfigError, SimulationError
 from cosim.evaluation.report import ALTRUISTIC, EGOISTIC
 from cosim.evaluation.runner import Baseline, evaluate
 from cosim.evaluation.store import run_name
-from cosim.files import atomic_write_text
+from cosim.files import FolderLock, atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -55,16 +56,25 @@ def sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], b
     for phi in phis:
         if not -math.pi <= phi <= math.pi:
             raise ConfigError(f"--phi: expected angles in radians within [-pi, pi], got {phi}")
+    for seed in seeds:  # train.seed: checked here, before the baselines run, not run by run
+        check_seed("--seeds", seed)
     backend = backend or Backend()
     backend.check()
     out = Path(out).resolve()  # Ray tasks on other machines find it there (a shared file system)
-    # Joined first: a cluster that cannot take the runs fails before any work is done.
-    cluster = _RayRuns(backend, cfg, eval_workers) if backend.name == "ray" else None
+    # One sweep per folder (its runs and evaluations lock their own): a live one's is refused before the cluster
+    # is joined, and a new folder is made only once the cluster can take the runs.
+    lock = FolderLock(out, "cosim sweep")
+    lock.acquire(create=False)
+    cluster = None
     try:
+        # Joined first: a cluster that cannot take the runs fails before any work is done.
+        cluster = _RayRuns(backend, cfg, eval_workers) if backend.name == "ray" else None
+        lock.acquire()
         return _sweep(cfg, out, phis, seeds, budget_min, eval_episodes, eval_workers, baselines, command, cluster)
     finally:
         if cluster is not None:
             cluster.close()
+        lock.release()
 
 
 def _sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], budget_min: float,

@@ -9,6 +9,13 @@ from its checkpoint: same parameters, optimizer and value-normaliser state, RNG 
 seeds follow from (seed, update, worker), so a resumed run continues the same sequence as an uninterrupted one.
 It returns a `TrainResult`. `add_arguments` / `run` are the argparse pair behind `cosim train`.
 
+The run folder has one writer (`cosim.files.FolderLock`, held from the first check of the folder to the end of
+the run): a second `train` into it is refused while the first lives. A stop in the middle of an update (a second
+Ctrl-C) writes the checkpoint of the last complete update, exact: its parameters, optimizer and RNG states and
+counters are kept aside as each update begins, and the logs are cut back to it. A resume refuses a `config.yaml`
+that is not a YAML mapping, and warns, naming the file and both counts, when `episodes.csv` or `updates.csv`
+lacks rows the checkpoint counts (deleted or cut: the run goes on, its log without them).
+
 One update: every worker plays one whole episode (`agents.collect`), then the network(s) learn from every
 sample the scheme allows (`agents.multiagent`). Samples of absent agents and episodes lost to a worker
 failure are masked out, never padded into the loss.
@@ -16,6 +23,7 @@ failure are masked out, never padded into the loss.
 
 from __future__ import annotations
 
+import copy
 import functools
 import logging
 import random
@@ -43,13 +51,13 @@ from agents.checkpoint import (
     set_rng_state,
 )
 from agents.collect import Collected, collect
-from agents.config import TrainConfig, check_device, train_config
-from agents.logs import RunLogger
+from agents.config import TrainConfig, check_device, train_config, use_bf16
+from agents.logs import RunLogger, cut_logs, log_gaps
 from agents.multiagent import Batch, MultiAgentPolicy
 from agents.rollout import Backend
 from cosim.config import EVAL_SEED_START, Config
 from cosim.errors import ConfigError
-from cosim.files import atomic_write_text, stale_temporaries
+from cosim.files import FolderLock, atomic_write_text, stale_temporaries
 from cosim.progress import Heartbeat
 from cosim.workers import EnvFactory
 
@@ -105,7 +113,18 @@ def config_changes(saved: Path, new: dict[str, Any]) -> dict[str, tuple[Any, Any
     """Dotted key -> (the run's value, the new one) for every key that differs, RESUMABLE keys left out."""
     if not saved.is_file():
         raise CheckpointError(f"--resume: {saved} not found; the run folder is incomplete")
-    old = _flat(yaml.safe_load(saved.read_text()) or {})
+    problem = None
+    try:
+        loaded = yaml.safe_load(saved.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        mark = getattr(exc, "problem_mark", None)
+        loaded, problem = None, "not YAML" + (f" (line {mark.line + 1}: {getattr(exc, 'problem', '')})" if mark else "")
+    if problem is None and not isinstance(loaded, dict):
+        problem = "not a mapping of config sections"
+    if problem is not None:
+        raise ConfigError(f"--resume: {saved}: {problem}; it is the run's config, which a resume compares with "
+                          "yours: restore it, or train into another --out")
+    old = _flat(loaded)
     now = _flat(yaml.safe_load(yaml.safe_dump(new)))  # the same YAML types on both sides
     return {k: (old.get(k), now.get(k)) for k in sorted(set(old) | set(now))
             if old.get(k) != now.get(k) and k not in RESUMABLE}
@@ -196,23 +215,37 @@ class _Run:
             raise ConfigError(f"--device {tc.device}: CUDA is not available on this machine")
         if out_dir.exists() and not out_dir.is_dir():
             raise ConfigError(f"--out {out_dir}: is a file, not a folder")
-        ckpt_path = out_dir / CHECKPOINT_NAME
-        if not resume and ckpt_path.exists():
-            raise CheckpointError(f"checkpoint {ckpt_path}: exists already; pass --resume to continue that run "
-                                  "or choose another --out")
-        payload = read_checkpoint(ckpt_path) if resume else None
-        changes = config_changes(out_dir / "config.yaml", run_config(cfg, tc)) if resume else {}
-        if changes and not allow_change:
-            listed = "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changes.items())
-            raise ConfigError(f"--resume {out_dir}: the config differs from the run's ({listed}); resume with the "
-                              "run's config (cosim train --config RUN/config.yaml), or pass --allow-config-change "
-                              "to continue with the new one (recorded in RUN/config_changes.yaml)")
-        return cls(cfg, tc, out_dir, payload, env_factory or _default_env_factory(cfg), changes, progress, backend)
+        lock = FolderLock(out_dir, "cosim train")
+        lock.acquire(create=False)  # a live run's files are its own, even to read: refused before any check
+        try:
+            ckpt_path = out_dir / CHECKPOINT_NAME
+            if not resume and ckpt_path.exists():
+                raise CheckpointError(f"checkpoint {ckpt_path}: exists already; pass --resume to continue that run "
+                                      "or choose another --out")
+            payload = read_checkpoint(ckpt_path) if resume else None
+            changes = config_changes(out_dir / "config.yaml", run_config(cfg, tc)) if resume else {}
+            if changes and not allow_change:
+                listed = "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changes.items())
+                raise ConfigError(f"--resume {out_dir}: the config differs from the run's ({listed}); resume with "
+                                  "the run's config (cosim train --config RUN/config.yaml), or pass "
+                                  "--allow-config-change to continue with the new one (recorded in "
+                                  "RUN/config_changes.yaml)")
+            if payload is not None:
+                counters = payload["counters"]
+                logged_every = int(payload.get("train", {}).get("log_every", tc.log_every))
+                for gap in log_gaps(out_dir, int(counters["updates"]), int(counters["episodes"]), logged_every):
+                    log.warning("%s", gap)
+            return cls(cfg, tc, out_dir, payload, env_factory or _default_env_factory(cfg), changes, progress,
+                       backend, lock)
+        except BaseException:
+            lock.release()
+            raise
 
     def __init__(self, cfg: Config, tc: TrainConfig, out_dir: Path, payload: dict[str, Any] | None,
                  env_factory: EnvFactory, changes: dict[str, tuple[Any, Any]] | None = None,
-                 progress: bool | None = None, backend: Backend | None = None) -> None:
+                 progress: bool | None = None, backend: Backend | None = None, lock: FolderLock | None = None) -> None:
         self.cfg, self.tc, self.out_dir = cfg, tc, out_dir
+        self.lock = lock or FolderLock(out_dir, "cosim train")
         self.ckpt_path = out_dir / CHECKPOINT_NAME
         self.counters = {k: 0 for k in COUNTERS}
         self.train_s = 0.0  # over the whole run
@@ -232,6 +265,9 @@ class _Run:
                          "n_actions": spec.n_actions, "shared_policy": tc.shared_policy,
                          "feature_dim": tc.feature_dim, "head_hidden": tc.head_hidden}
             self.policy = MultiAgentPolicy(len(spec.agents), spec.obs_shape, spec.n_actions, tc, tc.device)
+            # Which one `auto` chose decides whether the run is reproducible bit for bit (README).
+            log.info("forward passes in %s (train.precision: %s)",
+                     "bfloat16" if use_bf16(tc.precision, tc.device) else "float32", tc.precision)
             if payload is not None:
                 check_spec(payload, self.spec, self.ckpt_path)
                 self.policy.load_state_dict(payload["policy"])
@@ -242,7 +278,7 @@ class _Run:
             self.batch = Batch.allocate(spec.max_steps, tc.workers, len(spec.agents), spec.obs_shape,
                                         getattr(torch, spec.obs_dtype))
             # Every check passed: from here on the run folder changes.
-            out_dir.mkdir(parents=True, exist_ok=True)
+            self.lock.acquire()
             for stale in stale_temporaries(out_dir, CHECKPOINT_NAME) + stale_temporaries(out_dir, POLICY_NAME):
                 log.info("removing %s, left by a checkpoint write that was killed", stale)
                 stale.unlink()
@@ -256,8 +292,7 @@ class _Run:
             raise
         self.restarts_before = self.counters["restarts"]
         self.interrupted = False
-        self.boundary_rng: dict[str, Any] | None = None  # RNG states at the start of the update in progress
-        self.learning = False  # inside the update's learning and logging, which a checkpoint must not cut
+        self.boundary: dict[str, Any] | None = None  # the checkpoint payload as the update in progress began
         self.start = time.perf_counter()
         self.start_samples = self.counters["samples"]
         self.timing = {"rollout": 0.0, "update": 0.0}
@@ -278,13 +313,13 @@ class _Run:
         return self.progress() >= 1.0
 
     def begin_update(self) -> None:
-        # Collecting changes nothing but the RNG states: a stop before learning can still checkpoint the run
-        # as it was at this boundary.
-        self.boundary_rng = rng_state()
-        self.learning = False
+        # Kept aside (a copy: learning changes the tensors in place), so that a stop at any point of the update
+        # checkpoints the run exactly as it was at this boundary; a copy of the policy state costs a fraction
+        # of the update's episodes, and of the checkpoint write.
+        self.boundary = self.payload(copy_policy=True)
 
     def end_update(self) -> None:
-        self.boundary_rng, self.learning = None, False
+        self.boundary = None
 
     def next_seeds(self) -> list[int]:
         """One episode seed per worker of this update; fewer workers when fewer episodes remain."""
@@ -299,7 +334,6 @@ class _Run:
         return got
 
     def learn(self) -> dict[str, float]:
-        self.learning = True
         t0 = time.perf_counter()
         update = self.counters["updates"]
         stats = self.policy.update(self.batch, self.tc, update, self.progress())
@@ -347,25 +381,40 @@ class _Run:
         if self.counters["updates"] % self.tc.checkpoint_every == 0:
             self.checkpoint()
 
-    def checkpoint(self) -> None:
-        save_checkpoint(self.ckpt_path, {
-            "spec": self.spec, "policy": self.policy.state_dict(),
-            "counters": {**self.counters, "train_s": self.train_s},
-            "rng": rng_state() if self.boundary_rng is None else self.boundary_rng,
-            "train": self.tc.model_dump(), "config": self.cfg.to_dict(), "phis": list(self.cfg.phis())})
+    def payload(self, copy_policy: bool = False) -> dict[str, Any]:
+        """The checkpoint of the run as it is now."""
+        policy = self.policy.state_dict()
+        return {"spec": self.spec, "policy": copy.deepcopy(policy) if copy_policy else policy,
+                "counters": {**self.counters, "train_s": self.train_s}, "rng": rng_state(),
+                "train": self.tc.model_dump(), "config": self.cfg.to_dict(), "phis": list(self.cfg.phis())}
+
+    def checkpoint(self, payload: dict[str, Any] | None = None) -> None:
+        save_checkpoint(self.ckpt_path, payload or self.payload())
 
     def close(self) -> None:
-        self.bar.close()
-        self.pool.close()
-        self.logger.close()
-        self.counters["restarts"] = self.restarts_before + self.pool.restarts
-        if self.learning:  # stopped half-way through an update: its parameters are neither before nor after it
-            log.warning("stopped during update %d: keeping the last checkpoint (%s)", self.counters["updates"] + 1,
-                        self.ckpt_path)
-            return
-        if self.interrupted:
-            log.warning("stopped at update %d; writing a checkpoint to %s", self.counters["updates"], self.ckpt_path)
-        self.checkpoint()
+        """The final checkpoint (of the last complete update when stopped inside one), then the folder is free."""
+        try:
+            restarts = self.restarts_before + self.pool.restarts  # the update in progress's restarts did happen
+            if self.boundary is None:
+                self.counters["restarts"] = restarts
+                self.checkpoint()
+                if self.interrupted:
+                    log.warning("stopped at update %d; wrote a checkpoint to %s", self.counters["updates"],
+                                self.ckpt_path)
+            else:  # stopped inside an update: its parameters and counters are neither before nor after it
+                partial = self.boundary["counters"]["updates"] + 1
+                self.boundary["counters"]["restarts"] = restarts
+                self.counters = {k: self.boundary["counters"][k] for k in COUNTERS}
+                self.train_s = self.boundary["counters"]["train_s"]
+                self.checkpoint(self.boundary)
+                cut_logs(self.out_dir, self.counters["updates"], self.counters["episodes"])
+                log.warning("stopped during update %d: wrote a checkpoint of the last complete update (%d) to %s",
+                            partial, self.counters["updates"], self.ckpt_path)
+        finally:
+            self.bar.close()
+            self.pool.close()
+            self.logger.close()
+            self.lock.release()
 
     def result(self) -> TrainResult:
         c = self.counters

@@ -25,7 +25,7 @@ from typing import Any
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from cosim.config import EVAL_SEED_START
+from cosim.config import EVAL_SEED_START, check_seed
 from cosim.errors import ConfigError, CosimError, check_at_least
 
 log = logging.getLogger("cosim")
@@ -105,11 +105,17 @@ def _run_scenario(args: argparse.Namespace) -> int:
     from cosim.environment.policies import POLICIES
 
     _positive(args, "episodes")
+    if args.seed is not None:  # with the seeds after it, before anything runs or is written
+        check_seed("--seed", args.seed, args.episodes)
+    env = parallel_env(args.config, args.overrides)  # a bad config fails here, before the folder is made
     if args.save_routes is not None:  # before SUMO starts: a bad folder is the user's error, not a lost run
-        args.save_routes.mkdir(parents=True, exist_ok=True)
-    env = parallel_env(args.config, args.overrides)
+        try:
+            args.save_routes.mkdir(parents=True, exist_ok=True)
+        except BaseException:
+            env.close()
+            raise
     try:
-        first_seed = env.cfg.sim.seed if args.seed is None else args.seed
+        first_seed = check_seed("sim.seed", env.cfg.sim.seed, args.episodes) if args.seed is None else args.seed
         for name in args.policy or ["scripted", "random"]:
             policy = POLICIES[name](first_seed)
             for ep in tqdm(range(args.episodes), desc=name, unit="ep", leave=False, disable=None):
@@ -252,12 +258,14 @@ def _evaluate(args: argparse.Namespace) -> int:
     workers = ec.workers if args.workers is None else args.workers
     trajectories = ec.trajectories if args.trajectories is None else args.trajectories
     check_counts(episodes, workers, trajectories, prefix="--")
+    seed = check_seed("--seed" if args.seed is not None else "evaluate.seed",
+                      ec.seed if args.seed is None else args.seed, episodes)
     greedy = ec.greedy and not args.sample
     out = args.out or (args.run / "eval" if args.run else None)
     if out is None:
         raise CosimError("cosim evaluate: give --out DIR for a baseline without --run")
     policy = _trained_policy(args, greedy) if args.policy in ("checkpoint", "sb3") else Baseline(args.policy)
-    summary = evaluate(cfg, policy, out, episodes=episodes, seed=ec.seed if args.seed is None else args.seed,
+    summary = evaluate(cfg, policy, out, episodes=episodes, seed=seed,
                        workers=workers, trajectories=trajectories, confidence=ec.confidence, run_dir=args.run,
                        plots=not args.no_plots)
     log.info("wrote %s", Path(out) / "summary.json")
@@ -312,6 +320,7 @@ COMMANDS: dict[str, Command] = {
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    as_program = argv is None  # the process ends with this call (console script, python -m cosim.cli)
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = argparse.ArgumentParser(prog="cosim", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -336,14 +345,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         log.error("%s", exc)
         return 2
     except OSError as exc:
-        where = f" {exc.filename}" if exc.filename else ""
-        log.error("cosim %s:%s: %s", head.command, where, exc.strerror or exc)
+        where = f" {exc.filename}:" if exc.filename else ""
+        log.error("cosim %s:%s %s", head.command, where, exc.strerror or exc)
         return 2
     except KeyboardInterrupt:
         log.warning("cosim %s: interrupted", head.command)
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
+        if as_program:
+            # The command's work and exit status are settled: a late Ctrl-C (a second one just after a stop) must
+            # not cut short the exit's clean-up (workers joined, temporary folders removed) or change the status.
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _terminate(signum: int, frame: object) -> None:

@@ -6,15 +6,23 @@ the choices, or for an unknown key the section's keys), prefixed with the file w
 file's `base:` chain and the overrides (`{"reward.phi": 0.785}` or `["reward.phi=0.785"]`, values read as YAML
 scalars) are merged into one raw dict that one `Config.model_validate` checks, so a value is judged the same
 wherever it came from. Unknown keys are errors; missing keys keep the defaults. Relative paths in `net` are
-resolved against the YAML file's folder (in an override or a dict: against the working directory).
-Each field declares its default, bounds and unit (`[unit]` ending its description) in one place, which
-`Config.model_json_schema()` shows. Every section, `train:` and `evaluate:` included, is typed here; the module
-does not import torch, so rollout workers and the CLI read it cheaply.
+resolved against the YAML file's folder (in an override or a dict: against the working directory). A file
+must be UTF-8 YAML with no key given twice in a mapping; a file or override that is not is one line naming it
+and the position. Each field declares its default, bounds and unit (`[unit]` ending its description) in one
+place, which `Config.model_json_schema()` shows. Cross-field rules: a decision is a whole number of SUMO steps
+and the horizon a whole number of decisions; one agent's observation holds at most `MAX_OBSERVATION_VALUES`.
+Every section, `train:` and `evaluate:` included, is typed here; the module does not import torch, so rollout
+workers and the CLI read it cheaply.
+
+Seeds: `check_seed(name, seed, count)` is the one check of an episode seed (0 .. `SEED_MAX`, what SUMO's
+`--seed` takes), behind the seed keys, the command-line seed flags and `MergeEnv.reset(seed=...)`. Training
+episodes draw their seeds below `EVAL_SEED_START`, evaluation's default first seed.
 """
 
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
@@ -40,8 +48,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from cosim.environment.reward import TERMS
-from cosim.errors import ConfigError
+from cosim.errors import ConfigError, SeedError
 
 # A stacked VelocityMap of the paper's size vs one that trains on a CPU; user keys override a preset.
 OBSERVATION_PRESETS: dict[str, dict[str, Any]] = {
@@ -50,6 +57,14 @@ OBSERVATION_PRESETS: dict[str, dict[str, Any]] = {
 }
 # Episode seeds from here on are evaluation's; training draws its seeds below, so the two never meet.
 EVAL_SEED_START = 10_000_000
+# The largest episode seed: SUMO's --seed is a 32-bit signed integer (and numpy's SeedSequence, which the
+# scenario draws from, takes no negative one), so seeds are 0 .. SEED_MAX.
+SEED_MAX = 2**31 - 1
+# Values of one agent's stacked observation (frames x channels x height x width), at most: 12.8 times the
+# paper preset's 1,310,720 (10 x 4 x 64 x 512). At float32 that is 64 MiB per agent; each worker's VelocityMapper
+# keeps two stacks per AV (its ring of frames), and a training batch one per AV and decision step, so a larger
+# observation cannot train on one machine, and a mistyped size would otherwise fail in numpy's allocation.
+MAX_OBSERVATION_VALUES = 2**24
 # The bundled 2-lane merge with a long approach (sumo_net/dilemma), the net of every config that names none.
 DEFAULT_NET = Path(__file__).resolve().parents[1] / "sumo_net" / "dilemma" / "dilemma.net.xml"
 # HVs that never yield to the merging vehicle and keep their lane: no cooperative lane changes or speed
@@ -104,6 +119,35 @@ NumberMap = Annotated[
 ]
 # The bounds before the validator, so the JSON schema states them (pydantic leaves them raw after it).
 Angle = Annotated[float, AllowInfNan(False), Field(ge=-math.pi, le=math.pi), BeforeValidator(_no_bool)]
+
+
+def check_seed(name: str, seed: Any, count: int = 1) -> int:
+    """The one check of an episode seed, whether a config key, a command-line flag or `reset(seed=...)`: `seed`
+    as a plain int when it and the `count - 1` seeds after it lie in [0, SEED_MAX], else `SeedError` naming
+    `name`. A Python or numpy integer passes; a bool, a float or a string does not."""
+    problem = _seed_problem(seed, count)
+    if problem:
+        raise SeedError(f"{name}: {problem}")
+    return int(seed)
+
+
+def _seed_problem(seed: Any, count: int = 1) -> str | None:
+    last = SEED_MAX - count + 1
+    if isinstance(seed, numbers.Integral) and not isinstance(seed, bool) and 0 <= seed <= last:
+        return None
+    fit = f", so that the seeds of all {count} episodes fit" if count > 1 else ""
+    return f"expected an integer in [0, {last}]{fit} (SUMO's --seed is a 32-bit signed integer), got {_show(seed)}"
+
+
+def _seed(seed: int) -> int:
+    problem = _seed_problem(seed)
+    if problem:
+        raise _problem(problem)
+    return seed
+
+
+# A seed key: judged by the same check as a seed flag; the schema states the range.
+Seed = Annotated[Int, AfterValidator(_seed), Field(json_schema_extra={"minimum": 0, "maximum": SEED_MAX})]
 
 
 def _span(least: float | None = None, why: str = "") -> Any:
@@ -186,10 +230,13 @@ class NetConfig(_Section):
 
 
 class SimConfig(_Section):
-    step_length: Number = Field(0.1, gt=0, description="SUMO step; 0.1 s so side collisions are not stepped over [s]")
+    step_length: Number = Field(
+        0.1, gt=0, le=1.0, description="SUMO step; 0.1 s so side collisions are not stepped over, at most 1 s: at "
+        "a 1 s step SUMO already missed one (the two vehicles had passed each other within the step) [s]")
     decision_period: Number = Field(1.0, gt=0, description="between two agent decisions [s]")
-    horizon: Number = Field(20.0, gt=0, description="episode time limit (truncation) [s]")
-    seed: Int = Field(0, description="seed of the first episode; each reset without a seed takes the next one")
+    horizon: Number = Field(
+        20.0, gt=0, description="episode time limit (truncation), a whole number of decision periods [s]")
+    seed: Seed = Field(0, description="seed of the first episode; each reset without a seed takes the next one")
     collision_mingap_factor: Number = Field(0.0, description="0: only physical overlap is a collision [-]")
     on_collision: OnCollision = Field(
         "end", description="what a collision that involves an AV or the merging vehicle does: `end` the episode at "
@@ -217,14 +264,20 @@ class SimConfig(_Section):
 
     @model_validator(mode="after")
     def _whole_steps(self) -> Self:
-        if self.decision_period < self.step_length:
-            raise _problem(f"must be at least step_length ({self.step_length} s), got {self.decision_period} s",
-                           "decision_period")
-        steps = self.decision_period / self.step_length
-        if abs(steps - round(steps)) > 1e-6:
-            raise _problem(f"must be a whole number of SUMO steps (step_length = {self.step_length} s), got "
-                           f"{self.decision_period} s = {steps:.3g} steps", "decision_period")
+        _whole_multiple("decision_period", self.decision_period, "step_length", self.step_length, "SUMO steps")
+        # An episode is a whole number of decisions: a shorter horizon would still run one, a fraction be cut.
+        _whole_multiple("horizon", self.horizon, "decision_period", self.decision_period, "decision periods")
         return self
+
+
+def _whole_multiple(key: str, value: float, unit_key: str, unit: float, units: str) -> None:
+    """`key` is at least `unit_key` and a whole number of it, or a problem naming `key`."""
+    if value < unit:
+        raise _problem(f"must be at least {unit_key} ({unit:g} s), got {value:g} s", key)
+    count = value / unit
+    if abs(count - round(count)) > 1e-6:
+        raise _problem(f"must be a whole number of {units} ({unit_key} = {unit:g} s), got {value:g} s = "
+                       f"{count:.3g} {units}", key)
 
 
 class ScenarioConfig(_Section):
@@ -333,6 +386,19 @@ class ObservationConfig(_Section):
             raise _problem(f"expected distinct names from {list(CHANNELS)}, got {list(channels)}")
         return channels
 
+    @model_validator(mode="after")
+    def _fits(self) -> Self:
+        sizes = (self.frames, len(self.channels), self.height_px, self.width_px)
+        values = math.prod(sizes)  # type: ignore[arg-type]  # the preset has set every size
+        if values > MAX_OBSERVATION_VALUES:
+            paper = OBSERVATION_PRESETS["paper"]
+            raise _problem(
+                f"frames x channels x height_px x width_px = {' x '.join(map(str, sizes))} = {values:,} values per "
+                f"agent, more than {MAX_OBSERVATION_VALUES:,} ({MAX_OBSERVATION_VALUES * 4 // 2**20} MiB per agent "
+                f"as float32; a worker keeps two stacks per AV, a training batch one per AV and decision step); "
+                f"the paper preset has {paper['frames'] * len(CHANNELS) * paper['height_px'] * paper['width_px']:,}")
+        return self
+
 
 class RewardConfig(_Section):
     phi: Annotated[Angle | tuple[Angle, ...], WrapValidator(_angles)] = Field(
@@ -345,13 +411,21 @@ class RewardConfig(_Section):
     @field_validator("weights")
     @classmethod
     def _known_terms(cls, weights: Mapping[str, float]) -> Mapping[str, float]:
-        unknown = sorted(set(weights) - set(TERMS))
+        unknown = sorted(set(weights) - set(_terms()))
         if unknown:
-            raise _problem(f"unknown term; expected one of {sorted(TERMS)}", unknown[0])
+            raise _problem(f"unknown term; expected one of {sorted(_terms())}", unknown[0])
         return weights
 
     def weight(self, term: str) -> float:
-        return float(self.weights.get(term, TERMS[term].weight))
+        return float(self.weights.get(term, _terms()[term].weight))
+
+
+def _terms() -> Mapping[str, Any]:
+    # The reward module owns the term names (a term is registered beside its function); the config, which the
+    # environment builds on, looks them up only when it judges weights, so neither module imports the other.
+    from cosim.environment.reward import TERMS
+
+    return TERMS
 
 
 class TrainConfig(_Section):
@@ -398,11 +472,14 @@ class TrainConfig(_Section):
     log_every: Int = Field(1, gt=0, description="updates between two rows of the update log")
     log_every_s: Number = Field(
         30.0, ge=0, description="between two log lines when there is no terminal (no progress bar) [s]")
-    seed: Int = Field(0, description="seeds python, numpy, torch and the episodes")
+    seed: Seed = Field(
+        0, description="seeds python, numpy, torch and the episodes; an episode's seed is drawn from (seed, update, "
+        "worker) modulo EVAL_SEED_START, so training episodes stay below the evaluation seeds whatever this is")
     device: StrictStr = Field("cpu", description="torch device of the learner: cpu | cuda | cuda:N")
     precision: Precision = Field(
         "auto", description="forward passes of training: float32, bfloat16 (autocast; weights stay float32), or "
-        "auto: bfloat16 where the hardware has it (CPUs with AMX / AVX512-BF16, GPUs that support it), else float32")
+        "auto: bfloat16 where the hardware has it (CPUs whose lscpu flags include amx_bf16 or avx512_bf16, GPUs that "
+        "support it), else float32; only float32 runs are reproducible bit for bit")
     feature_dim: Int = Field(512, gt=0, description="units of the feature extractor's FC layer (paper: 512)")
     head_hidden: Int = Field(256, gt=0, description="units of the actor's and critic's hidden FC layer (paper: 256)")
     max_restarts: Int = Field(100, ge=0, description="worker restarts tolerated over a run before it is stopped")
@@ -423,11 +500,23 @@ class EvaluateConfig(_Section):
     """The `evaluate:` section (all optional; command-line flags override)."""
 
     episodes: Int = Field(100, ge=1, description="evaluation episodes")
-    seed: Int = Field(EVAL_SEED_START, description="first evaluation seed; training seeds stay below it")
+    seed: Seed = Field(
+        EVAL_SEED_START, description="first evaluation seed (the episodes take seed .. seed + episodes - 1); "
+        "training seeds stay below the default")
     greedy: StrictBool = Field(True, description="argmax actions; false: sampled from the policy")
     trajectories: Int = Field(3, ge=0, description="first episodes whose per-step trajectories are kept for plots")
     workers: Int = Field(1, ge=1, description="worker processes")
+    step_timeout: Number = Field(
+        60.0, gt=0, description="a worker that gives no step of its episode this long is replaced and the episode "
+        "played again (with workers > 1) [s]")
     confidence: Number = Field(0.95, gt=0, lt=1, description="of the intervals in the summary [-]")
+
+    @model_validator(mode="after")
+    def _seeds_fit(self) -> Self:
+        problem = _seed_problem(self.seed, self.episodes)
+        if problem:
+            raise _problem(problem, "seed")
+        return self
 
 
 class Config(_Section):
@@ -520,10 +609,16 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     keys are merged over it, so experiments state only what differs."""
     if not path.is_file():
         raise ConfigError(f"config file {path}: not found")
+    raw = path.read_bytes()
     try:
-        loaded = yaml.safe_load(path.read_text())
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ConfigError(f"config file {path}: not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line})") from None
+    try:
+        loaded = yaml.load(text, Loader=_ConfigLoader)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {path}: not valid YAML ({exc})") from None
+        raise ConfigError(f"config file {path}: not valid YAML: {_yaml_problem(exc)}") from None
     if loaded is not None and not isinstance(loaded, dict):
         raise ConfigError(f"config file {path}: expected a mapping of sections at top level")
     data = loaded or {}
@@ -566,8 +661,62 @@ def _parse_overrides(overrides: Mapping[str, Any] | Sequence[str] | None) -> dic
         key, sep, raw = item.partition("=")
         if not sep or not key:
             raise ConfigError(f"override {item!r}: expected KEY=VALUE, e.g. reward.phi=0.785")
-        parsed[key.strip()] = yaml.safe_load(raw)
+        try:
+            parsed[key.strip()] = yaml.load(raw, Loader=_ConfigLoader)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"override {key.strip()}: {raw!r} is not a YAML value: "
+                              f"{_yaml_problem(exc, lines=False)}") from None
     return parsed
+
+
+class _ConfigLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping: YAML requires keys to be unique, and
+    PyYAML would keep the last silently, losing the first (a whole `sim:` section, say) unseen."""
+
+    def compose_document(self) -> yaml.Node:
+        node = super().compose_document()
+        _check_unique_keys(node, "", set())
+        return node
+
+
+def _check_unique_keys(node: yaml.Node, where: str, done: set[int]) -> None:
+    if id(node) in done:  # an alias: checked where its anchor is (and a recursive one would never end)
+        return
+    done.add(id(node))
+    children: list[tuple[str, yaml.Node]] = []
+    if isinstance(node, yaml.MappingNode):
+        first: dict[tuple[str, Any], yaml.Node] = {}
+        for key, value in node.value:
+            # `<<: *base` merges a mapping whose keys this one overrides on purpose.
+            if key.tag != "tag:yaml.org,2002:merge" and isinstance(key, yaml.ScalarNode):
+                dotted = f"{where}.{key.value}" if where else str(key.value)
+                earlier = first.setdefault((key.tag, key.value), key)
+                if earlier is not key:
+                    raise yaml.constructor.ConstructorError(
+                        problem=f"key {dotted} given twice (first on line {earlier.start_mark.line + 1})",
+                        problem_mark=key.start_mark)
+                children.append((dotted, value))
+            else:
+                children.append((where, value))
+    elif isinstance(node, yaml.SequenceNode):
+        children = [(f"{where}[{i}]", item) for i, item in enumerate(node.value)]
+    for dotted, child in children:
+        _check_unique_keys(child, dotted, done)
+
+
+def _yaml_problem(exc: yaml.YAMLError, lines: bool = True) -> str:
+    """PyYAML's message on one line (its own spans several, with a caret under the spot): where, what, and
+    what it was reading."""
+    if not isinstance(exc, yaml.MarkedYAMLError) or exc.problem_mark is None:
+        return " ".join(str(exc).split())
+
+    def at(mark: Any) -> str:
+        return f"line {mark.line + 1}, column {mark.column + 1}" if lines else f"column {mark.column + 1}"
+
+    text = f"{at(exc.problem_mark)}: {exc.problem}"
+    if exc.context:
+        text += f" ({exc.context}" + (f" from {at(exc.context_mark)})" if exc.context_mark else ")")
+    return text
 
 
 def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:

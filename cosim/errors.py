@@ -9,6 +9,11 @@ class ConfigError(CosimError):
     """A config file or override is missing, malformed, or names an unknown key / bad value."""
 
 
+class SeedError(ConfigError, ValueError):
+    """A seed that is no episode seed (`cosim.config.check_seed`); a ValueError as well, as an API's caller
+    passing a bad argument expects."""
+
+
 class NetError(CosimError):
     """A net file or net description is missing, malformed, or inconsistent with the net."""
 

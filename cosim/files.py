@@ -2,18 +2,22 @@
 
 Contract: `atomic_path(path)` yields a temporary path beside `path` that replaces it only once the body
 succeeded (a reader sees the old file or the new one, never half of one), with the permissions any new file
-of the user gets (the umask's, not mkstemp's private 0600); `atomic_write_text` is its text shortcut;
+of the user gets (the umask's, not mkstemp's private 0600); a failed write (a full disk) removes the temporary file
+and raises an OSError naming `path`, not the temporary; `atomic_write_text` is its text shortcut;
 `stale_temporaries(folder, name)` lists what an interrupted atomic write of `name` left behind. `AppendCsv`
 appends rows flushed one by one, keeps an existing file's header (a row with a new key widens it; a missing
 key is an empty cell), and drops a half-written last line left by an interrupted run, so runs can resume.
-The project's CSV tables go through here only: `read_csv(path)` (complete rows as dicts of strings; none for a
-missing file), `write_csv(path, rows, fields)` (atomic), `AppendCsv`, and `column(rows, name)`, a column as
-floats (booleans as 0/1, empty or unparsable cells as NaN).
+The project's CSV tables go through here only: `read_csv(path, ints)` (complete rows as dicts of strings; none
+for a missing file; a `CosimError` naming the file and line for a repeated header, which two processes writing
+one file leave, or a cell of an `ints` column that is no integer), `write_csv(path, rows, fields)` (atomic),
+`AppendCsv`, and `column(rows, name)`, a column as floats (booleans as 0/1, empty or unparsable cells as NaN).
+`FolderLock(folder, command)`: one writer per results folder (a lock the kernel drops when its owner dies).
 """
 
 from __future__ import annotations
 
 import csv
+import fcntl
 import io
 import os
 import tempfile
@@ -23,6 +27,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from cosim.errors import CosimError
+
+LOCK_NAME = ".cosim.lock"
 
 
 def _umask() -> int:
@@ -34,7 +42,10 @@ def _umask() -> int:
 @contextmanager
 def atomic_path(path: Path) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    except OSError as exc:  # it names the temporary it tried
+        raise _as_write_of(exc, exc.filename, path) from None
     os.fchmod(fd, 0o666 & ~_umask())
     os.close(fd)
     try:
@@ -42,9 +53,19 @@ def atomic_path(path: Path) -> Iterator[Path]:
         with open(tmp, "rb") as f:  # on disk before it takes the old file's place
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
+        if isinstance(exc, OSError):
+            raise _as_write_of(exc, tmp, path) from None
         raise
+
+
+def _as_write_of(exc: OSError, tmp: str | None, path: Path) -> OSError:
+    """A failed write of the temporary file `tmp` (a full disk: a write's error names no file) as one of `path`:
+    the file the user knows. An error about another file stays as it is."""
+    if exc.filename not in (None, tmp):
+        return exc
+    return OSError(exc.errno, exc.strerror or str(exc), str(path))
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -58,12 +79,37 @@ def stale_temporaries(folder: Path, name: str) -> list[Path]:
     return sorted(p for p in folder.glob(f".{stem}.*{suffix}") if p.is_file())
 
 
-def read_csv(path: Path) -> list[dict[str, str]]:
-    """The complete rows of a CSV file with a header; a half-written last row (an interrupted run) is dropped."""
-    if not Path(path).is_file():
+def read_csv(path: Path, ints: Sequence[str] = ()) -> list[dict[str, str]]:
+    """The complete rows of a CSV file with a header; a half-written last row (an interrupted run) is dropped.
+    `CosimError` naming the file and the line for a line that repeats the header, or a cell of a column in `ints`
+    that is no integer: damage that rerunning into the folder cannot repair."""
+    path = Path(path)
+    if not path.is_file():
         return []
-    with Path(path).open(newline="") as f:
-        return [r for r in csv.DictReader(f) if None not in r.values() and None not in r]
+    rows = []
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        for row in reader:
+            if None in row.values() or None in row:
+                continue
+            if list(row.values()) == reader.fieldnames:
+                raise CosimError(f"{path}: line {reader.line_num} repeats the header: two processes wrote this file "
+                                 "at once (before cosim locked its folders), so its rows cannot be trusted; move "
+                                 "the folder away and run the command again into a new one")
+            for key in ints:
+                if key in row and not _is_int(row[key]):
+                    raise CosimError(f"{path}: line {reader.line_num}: {key} {row[key]!r} is not an integer; the "
+                                     "file is damaged: move the folder away and run the command again into a new one")
+            rows.append(row)
+    return rows
+
+
+def _is_int(text: str) -> bool:
+    try:
+        int(text)
+    except ValueError:
+        return False
+    return True
 
 
 def write_csv(path: Path, rows: Sequence[Mapping[str, Any]], fields: Sequence[str] | None = None) -> None:
@@ -118,8 +164,72 @@ class AppendCsv:
         if extra:  # a new column widens the file (earlier rows get empty cells): no value is dropped
             self.fields += extra
             write_csv(self.path, read_csv(self.path), self.fields)
-        with self.path.open("a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=self.fields)
-            if new:
-                writer.writeheader()
-            writer.writerow(dict(row))
+        try:
+            with self.path.open("a", newline="") as f:
+                writer = csv.DictWriter(f, fieldnames=self.fields)
+                if new:
+                    writer.writeheader()
+                writer.writerow(dict(row))
+        except OSError as exc:  # a full disk: the write's error names no file
+            raise _as_write_of(exc, None, self.path) from None
+
+
+class FolderLock:
+    """One writer per results folder: `acquire()` takes an exclusive `flock` on `folder/.cosim.lock`, which
+    records the owner's pid and command for the one line a second process gets (a `CosimError`); `release()`
+    removes the file and frees the folder. The kernel drops the lock when its owner dies, so a killed run leaves
+    nothing stuck; the descriptor is close-on-exec and the worker processes are exec'd (forkserver, spawn, Ray),
+    so none of them holds the lock past its owner (a plain `os.fork` child would: it shares the descriptor)."""
+
+    def __init__(self, folder: Path, command: str) -> None:
+        self.folder, self.command = Path(folder), command
+        self.path = self.folder / LOCK_NAME
+        self.fd: int | None = None
+
+    def acquire(self, create: bool = True) -> None:
+        """Hold the lock (again: a no-op); `create=False`: only if the folder exists, so that a command refused
+        for its input leaves no folder behind, while one into a live folder is refused before it reads a file."""
+        if self.fd is not None or not (create or self.folder.is_dir()):
+            return
+        self.folder.mkdir(parents=True, exist_ok=True)
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                owner = os.read(fd, 512).decode(errors="replace").strip() or "pid unknown"
+                os.close(fd)
+                raise CosimError(f"{self.folder}: in use by another cosim process ({owner}); wait for it to finish "
+                                 "or choose another --out") from None
+            if _same_file(fd, self.path):
+                break
+            os.close(fd)  # its owner removed it between our open and our lock: lock the one there now
+        try:
+            os.ftruncate(fd, 0)
+            os.write(fd, f"pid {os.getpid()}, {self.command}\n".encode())
+        except OSError as exc:  # a full disk: the write's error names no file
+            os.close(fd)
+            raise _as_write_of(exc, None, self.path) from None
+        self.fd = fd
+
+    def release(self) -> None:
+        if self.fd is None:
+            return
+        self.path.unlink(missing_ok=True)  # before unlocking: whoever opened it meanwhile sees it gone and retries
+        os.close(self.fd)
+        self.fd = None
+
+    def __enter__(self) -> FolderLock:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return False
+    return (st.st_dev, st.st_ino) == (os.fstat(fd).st_dev, os.fstat(fd).st_ino)

@@ -14,13 +14,23 @@ Contract:
   shared slots stay valid until its next command. Episodes do not reset by themselves: the step that ends one
   carries the env's `episode` summary and the caller decides what comes next.
 - A worker whose env raises, whose process dies or that stays silent for `timeout` seconds is killed and
-  replaced by a fresh process (given `START_TIMEOUT` to start); its result is `lost` (no agent alive): the
-  running episode is lost and must not be counted. More than `max_restarts` replacements over the pool's
-  life raise `SimulationError`, and so does a worker whose env fails to start `START_ATTEMPTS` times in a row
-  (a systematic fault, not bad luck).
+  replaced by a fresh process (given `START_TIMEOUT` to start), with a WARNING naming why (a timeout names
+  the setting `timeout_key` that bounds it); its result is `lost` (no agent alive): the running episode is
+  lost and must not be counted. More than `max_restarts` replacements over the pool's life raise
+  `SimulationError` (naming `restarts_key`), and so does a worker whose env fails to start `START_ATTEMPTS`
+  times in a row (a systematic fault, not bad luck).
   Bad input (`ConfigError`, `NetError`) fails the same way in every process and is raised at once.
 - `send_call(ws, fn, args)` runs the picklable `fn(env, arg)` in each worker of `ws` (a whole evaluation
-  episode, say); `recv(ws, lost=...)` returns its small result, or `lost()` for a worker that failed.
+  episode, say); `recv(ws, lost=...)` returns its small result, or `lost()` for a worker that failed. A long
+  call stays within `timeout` per step by calling `keep_alive()` each step: each beat restarts the worker's
+  timeout, so an episode may take any time while a stopped or hung worker is found within `timeout`.
+- Temporary files carry their owner, so that none outlives a run, whatever ended it. Each process that starts
+  a pool (or a Ray actor) has its folder TMPDIR/cosim_<pid>-<start> (`run_folder`; <start>: the process's
+  start time from /proc, which tells it from a later process with the same pid), removed when it exits;
+  multiprocessing's own folder (pymp-*, the forkserver's socket) is made in it, or, where the socket's path
+  would be too long for AF_UNIX, beside it and named in its `pymp` file. Shared arrays are
+  /dev/shm/cosim_<pid>-<start>_obs_*. Every pool start first removes (`remove_leftovers`) such folders and
+  files whose owner no longer runs (a kill -9): never a live process's, nor names not of this form.
 This module imports neither torch nor SUMO, so workers start fast; the env factory imports what it needs.
 """
 
@@ -29,13 +39,16 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
+import re
 import shutil
 import signal
 import tempfile
+import time
 import traceback
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from multiprocessing.connection import Connection
+from multiprocessing import util as mp_util
+from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
@@ -51,6 +64,113 @@ START_ATTEMPTS = 3
 START_TIMEOUT = 120.0
 
 EnvFactory = Callable[[], Any]  # () -> pettingzoo.ParallelEnv; must be picklable (e.g. functools.partial)
+
+
+# -- temporary files, named after their owner (module doc) ------------------------------------------------
+SHM = Path("/dev/shm")
+_OWNED = re.compile(r"cosim_(\d+)-(\d+)(_|$)")  # cosim_<pid>-<start>, alone or followed by _...
+# multiprocessing's folder and its forkserver's socket within it, as long as their random names make them
+_SOCKET_TAIL = len("/pymp-12345678/listener-12345678")
+_SOCKET_PATH_MAX = 107  # bytes of an AF_UNIX socket path on Linux (108 with the closing NUL)
+_RUN_FOLDERS: dict[int, Path] = {}  # by pid: a forked child makes its own
+
+
+def _started(pid: int) -> int | None:
+    """When process `pid` started [clock ticks after boot]; None if no such process runs (a zombie is dead)."""
+    try:
+        state, *fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (FileNotFoundError, ProcessLookupError):
+        return None
+    return None if state in ("Z", "X") else int(fields[18])  # stat's 22nd field; its 2nd, the name, may hold ")"
+
+
+def _runs(pid: int, start: int) -> bool:
+    """Whether process `pid` runs and is the one that started at `start`, not a later one with its pid."""
+    try:
+        return _started(pid) == start
+    except PermissionError:  # another user's, hidden by /proc's hidepid: leave its files alone
+        return True
+
+
+def _owner() -> str:
+    return f"cosim_{os.getpid()}-{_started(os.getpid()) or 0}"
+
+
+def remove_leftovers() -> list[Path]:
+    """Remove the temporary folders and shared-memory files of processes that no longer run (module doc);
+    returns what was removed. Without /proc (not Linux) a dead owner cannot be told from a live one: none is."""
+    if _started(os.getpid()) is None:
+        return []
+    removed = []
+    for base in dict.fromkeys((Path(tempfile.gettempdir()), SHM)):
+        try:
+            entries = list(base.iterdir())
+        except OSError:  # no /dev/shm
+            continue
+        for path in entries:
+            owner = _OWNED.match(path.name)
+            if owner is None or _runs(int(owner[1]), int(owner[2])):
+                continue
+            try:
+                if path.is_dir() and not path.is_symlink():
+                    beside = path / "pymp"
+                    if beside.is_file():  # multiprocessing's folder where it could not be nested (_nest_mp)
+                        pymp = Path(beside.read_text().strip())
+                        if pymp.name.startswith("pymp-") and pymp.parent == base:
+                            shutil.rmtree(pymp, ignore_errors=True)
+                    shutil.rmtree(path, ignore_errors=True)
+                else:
+                    path.unlink(missing_ok=True)
+            except OSError:  # another user's (sticky /tmp, /dev/shm): theirs to remove
+                continue
+            removed.append(path)
+    if removed:
+        log.info("removed what stopped processes left: %s", ", ".join(str(p) for p in removed))
+    return removed
+
+
+def run_folder() -> Path:
+    """This process's temporary folder, made at the first call and removed when the process exits;
+    multiprocessing's folder is made in it (module doc)."""
+    pid = os.getpid()
+    if pid not in _RUN_FOLDERS:
+        remove_leftovers()  # a run without a pool (one env in this process) cleans up after killed ones too
+        folder = Path(tempfile.gettempdir()) / _owner()
+        folder.mkdir(exist_ok=True)
+        # After multiprocessing removes its folder within (exitpriority -100): removed first, it would
+        # print a traceback at exit.
+        mp_util.Finalize(None, shutil.rmtree, args=(str(folder),), kwargs={"ignore_errors": True},
+                         exitpriority=-200)
+        _RUN_FOLDERS[pid] = folder
+        _nest_mp(folder)
+    return _RUN_FOLDERS[pid]
+
+
+def _nest_mp(folder: Path) -> None:
+    """Make multiprocessing's folder now, in `folder`: it makes it once per process, at its first need (the
+    forkserver's start), in the temp dir of that moment. Where the socket's path would be too long (a deep
+    TMPDIR), or where it exists already, it stays where it is and `folder/pymp` names it."""
+    before = tempfile.tempdir
+    if len(os.fsencode(folder)) + _SOCKET_TAIL <= _SOCKET_PATH_MAX:
+        tempfile.tempdir = str(folder)
+    try:
+        pymp = Path(mp_util.get_temp_dir())
+    finally:
+        tempfile.tempdir = before
+    if pymp.parent != folder:
+        (folder / "pymp").write_text(f"{pymp}\n")
+
+
+# -- a worker's beats during a call -------------------------------------------------------------------------
+_CALLER: Connection | None = None  # in a worker, during a `call`: its pipe to the pool
+
+
+def keep_alive(wait_s: float | None = None) -> None:
+    """Tell the pool, from a `send_call` function, that this worker is working: each beat restarts its
+    timeout (call it every step); `wait_s`: the next beat may take that long [s] instead (loading a policy,
+    say). Does nothing outside a pool's call."""
+    if _CALLER is not None:
+        _CALLER.send(("beat", wait_s))
 
 
 @dataclass(frozen=True)
@@ -142,7 +262,8 @@ class _EnvRunner:
 
 
 def _worker_main(conn: Connection, env_factory: EnvFactory, tmp_root: str) -> None:
-    """Process entry: build the env, then serve attach / reset / step / close commands."""
+    """Process entry: build the env, then serve attach / reset / step / call / close commands."""
+    global _CALLER
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the learner's to handle
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     # The env's temporary files go into the pool's folder, which the pool removes even if this process is killed.
@@ -161,7 +282,12 @@ def _worker_main(conn: Connection, env_factory: EnvFactory, tmp_root: str) -> No
                 conn.send(("ok", None))
             elif cmd == "call":
                 fn, fn_arg = arg
-                conn.send(("ok", fn(env, fn_arg)))
+                _CALLER = conn
+                try:
+                    result = fn(env, fn_arg)
+                finally:
+                    _CALLER = None
+                conn.send(("ok", result))
             else:
                 conn.send(("ok", runner.reset(arg) if cmd == "reset" else runner.step(arg)))
     except EOFError:  # the learner went away
@@ -210,10 +336,10 @@ class _Worker:
         except (BrokenPipeError, OSError) as exc:
             raise WorkerFailure(f"{self.proc.name}: pipe closed ({exc})") from None
 
-    def recv(self, timeout: float) -> Any:
+    def read(self) -> tuple[bool, Any]:
+        """The next message, which has arrived: (True, seconds the next may take or None) for a beat, else
+        (False, the answer)."""
         try:
-            if not self.conn.poll(timeout):
-                raise WorkerFailure(f"{self.proc.name}: no answer in {timeout:g} s (train.step_timeout)")
             status, payload = self.conn.recv()
         except (EOFError, OSError):
             raise WorkerFailure(f"{self.proc.name}: process died (exit code {self.proc.exitcode})") from None
@@ -221,7 +347,19 @@ class _Worker:
             raise payload
         if status == "error":
             raise WorkerFailure(f"{self.proc.name}: env raised {payload}")
-        return payload
+        return status == "beat", payload
+
+    def silent(self, seconds: float, setting: str) -> WorkerFailure:
+        return WorkerFailure(f"{self.proc.name}: no answer in {seconds:g} s ({setting})")
+
+    def recv(self, timeout: float, setting: str) -> Any:
+        """The answer to the last command (not a call's: `WorkerPool.recv` hears its beats)."""
+        while True:
+            if not self.conn.poll(timeout):
+                raise self.silent(timeout, setting)
+            beat, payload = self.read()
+            if not beat:
+                return payload
 
     def close(self, timeout: float = 5.0) -> None:
         try:
@@ -258,16 +396,20 @@ class WorkerPool(PoolCommands):
     """W env worker processes with shared observation slots; failed workers are replaced (module doc)."""
 
     def __init__(self, env_factory: EnvFactory, workers: int, max_restarts: int = 100, timeout: float = 60.0,
-                 start_method: str | None = None) -> None:
+                 start_method: str | None = None, timeout_key: str = "train.step_timeout",
+                 restarts_key: str = "train.max_restarts") -> None:
         method = start_method or ("forkserver" if "forkserver" in mp.get_all_start_methods() else "spawn")
         self.ctx = mp.get_context(method)
         self.env_factory = env_factory
         self.max_restarts = max_restarts
         self.timeout = timeout
+        self.timeout_key = timeout_key  # the settings that bound this pool, named in its messages
+        self.restarts_key = restarts_key
         self.restarts = 0
         self.workers: list[_Worker] = []
         self._files: list[str] = []
-        self._tmp_root = tempfile.mkdtemp(prefix="cosim_pool_")
+        remove_leftovers()
+        self._tmp_root = tempfile.mkdtemp(prefix="pool_", dir=run_folder())
         try:
             for w in range(workers):
                 self.workers.append(self._start(w))
@@ -296,8 +438,8 @@ class WorkerPool(PoolCommands):
         return _Worker(self.ctx, self.env_factory, f"rollout-{w}", self._tmp_root)
 
     def _shared(self, shape: tuple[int, ...]) -> np.ndarray:
-        folder = "/dev/shm" if os.path.isdir("/dev/shm") else None  # RAM-backed where there is one
-        fd, path = tempfile.mkstemp(prefix="cosim_obs_", dir=folder)
+        folder = SHM if SHM.is_dir() else run_folder()  # RAM-backed where there is one
+        fd, path = tempfile.mkstemp(prefix=f"{_owner()}_obs_", dir=folder)
         os.close(fd)
         self._files.append(path)
         return _map(path, shape, self.spec.obs_dtype, "w+")
@@ -306,12 +448,12 @@ class WorkerPool(PoolCommands):
         arrays = [(path, a.shape, self.spec.obs_dtype, w) for path, a in zip(self._files, (self.obs, self.final),
                                                                           strict=True)]
         self.workers[w].send("attach", arrays)
-        self.workers[w].recv(self.timeout)
+        self.workers[w].recv(self.timeout, self.timeout_key)
 
     def _recv_spec(self, w: int) -> EnvSpec:
         for attempt in range(1, START_ATTEMPTS + 1):
             try:
-                return self.workers[w].recv(max(self.timeout, START_TIMEOUT))
+                return self.workers[w].recv(max(self.timeout, START_TIMEOUT), self.timeout_key)
             except WorkerFailure as exc:
                 reason = exc
                 if attempt < START_ATTEMPTS:
@@ -325,7 +467,7 @@ class WorkerPool(PoolCommands):
             self.restarts += 1
             if self.restarts > self.max_restarts:
                 raise SimulationError(f"rollout worker {w} failed; {self.restarts} failures in total exceed "
-                                      f"train.max_restarts = {self.max_restarts}; last failure: {reason}")
+                                      f"{self.restarts_key} = {self.max_restarts}; last failure: {reason}")
             log.warning("rollout worker %d failed (%s); replacing it (restart %d of at most %d)", w,
                         str(reason).splitlines()[0], self.restarts, self.max_restarts)
             self.workers[w].kill()
@@ -333,7 +475,7 @@ class WorkerPool(PoolCommands):
             if not self._files:  # starting up: the caller receives the new worker's spec
                 return
             try:
-                spec = self.workers[w].recv(max(self.timeout, START_TIMEOUT))
+                spec = self.workers[w].recv(max(self.timeout, START_TIMEOUT), self.timeout_key)
                 if spec != self.spec:
                     raise SimulationError(f"rollout worker {w} was restarted with another env spec: {spec}")
                 self._attach(w)
@@ -357,15 +499,40 @@ class WorkerPool(PoolCommands):
     def recv(self, ws: Sequence[int], lost: Callable[[], Any] | None = None) -> list[Any]:
         """Results of the last command sent to each worker of `ws`; a failed worker is replaced and its result is
         `lost()` (default: `StepResult.lost_episode`)."""
+        got: dict[int, Any] = {}
+        failed: dict[int, WorkerFailure] = {}
+        # All of them at once, so that each one's beats are heard as they come and its silence is timed alone.
+        waits = dict.fromkeys(ws, self.timeout)  # [s] worker -> how long its next message may take
+        deadlines = {w: time.monotonic() + self.timeout for w in ws}
+        while deadlines:
+            conns = {self.workers[w].conn: w for w in deadlines}
+            for conn in wait(list(conns), max(0.0, min(deadlines.values()) - time.monotonic())):
+                w = conns[conn]
+                try:
+                    beat, payload = self.workers[w].read()
+                except WorkerFailure as exc:
+                    failed[w] = exc
+                    del deadlines[w]
+                    continue
+                if beat:
+                    waits[w] = max(self.timeout, payload or 0.0)
+                    deadlines[w] = time.monotonic() + waits[w]
+                else:
+                    got[w] = payload
+                    del deadlines[w]
+            now = time.monotonic()
+            for w in [w for w, deadline in deadlines.items() if deadline <= now]:
+                failed[w] = self.workers[w].silent(waits[w], self.timeout_key)
+                del deadlines[w]
         n = len(self.spec.agents)
         out: list[Any] = []
-        for w in ws:
-            try:
-                out.append(self.workers[w].recv(self.timeout))
-            except WorkerFailure as exc:
-                self._replace(w, exc)
-                self.obs[w] = 0
-                out.append(StepResult.lost_episode(n) if lost is None else lost())
+        for w in ws:  # replaced only now: a replacement's start must not eat into the others' time
+            if w in got:
+                out.append(got[w])
+                continue
+            self._replace(w, failed[w])
+            self.obs[w] = 0
+            out.append(StepResult.lost_episode(n) if lost is None else lost())
         return out
 
     def close(self) -> None:

@@ -15,7 +15,11 @@ On the last step every agent's info carries `"episode"`, the episode's summary: 
 `cosim.environment.tracker.EpisodeTracker` the env feeds every snapshot (`env.tracker`), with the seed and whether the
 merge failed. Observations are read-only views valid until the next step.
 
-`step` is a template of small hooks: act -> simulate -> snapshot -> observe -> reward -> end.
+`step` is a template of small hooks: act -> simulate -> snapshot -> observe -> reward -> end. It takes an action for
+every live agent (`env.agents`): an unknown agent, a missing action or one that is not an integer in range (`Action`;
+numpy integers are fine) is an `ActionError` (a `CosimError` and a `ValueError`) naming the agent and the allowed
+actions; actions of agents already done are ignored. A closed env stays closed: `reset` and `step` after `close`
+raise a RuntimeError that says so.
 
 With `sim.outputs` each episode writes SUMO's tripinfo and induction-loop files into its own folder
 (`cosim.sumo.outputs.episode_folder`), over a window that is the same for every episode: `flush_outputs()` runs
@@ -29,6 +33,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import reprlib
 import shutil
 import tempfile
 from collections.abc import Mapping
@@ -40,20 +45,44 @@ import numpy as np
 from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
-from cosim.config import Config, load_config
-from cosim.environment.control import N_ACTIONS, decide
+from cosim.config import Config, check_seed, load_config
+from cosim.environment.control import N_ACTIONS, Action, decide
 from cosim.environment.episode import EndCheck, MergeZone, episode_end, merge_status
 from cosim.environment.reward import StepChange, svo_rewards, utility_terms, weighted_utility
 from cosim.environment.tracker import EpisodeTracker
 from cosim.environment.velocity_map import VelocityMapper, rasterize_road
-from cosim.errors import SimulationError
+from cosim.errors import CosimError, SimulationError
 from cosim.sumo.net import load_net
 from cosim.sumo.outputs import SumoOutputs, detector_site, episode_folder, episode_output_args, read_episode_outputs
 from cosim.sumo.scenario import av_id, kind_of, plan_episode, write_episode
 from cosim.sumo.session import SumoSession
 from cosim.sumo.snapshot import KIND_AV, KIND_MERGER, Snapshot
+from cosim.workers import run_folder
 
 log = logging.getLogger(__name__)
+
+ALLOWED_ACTIONS = f"an integer in 0..{N_ACTIONS - 1} ({', '.join(f'{int(a)} {a.name}' for a in Action)})"
+
+
+class ActionError(CosimError, ValueError):
+    """`MergeEnv.step` got something that is not an action of a live agent (a ValueError, as gymnasium's
+    callers expect of a bad action)."""
+
+
+def checked_action(agent: str, value: Any) -> int:
+    """`value` as an action index, or `ActionError` naming `agent` and the allowed actions. Python ints (and
+    `Action` members) and numpy integers, 0-d arrays included (what SB3 and SuperSuit hand over), are
+    actions; floats, strings, bools, None and arrays of a shape are not, as in gymnasium's `Discrete`."""
+    if type(value) is int and 0 <= value < N_ACTIONS:  # the trainer's and the evaluation's own actions
+        return value
+    if isinstance(value, np.ndarray):
+        integral = value.shape == () and value.dtype.kind in "iu"
+    else:  # a bool is an int to Python, not an action
+        integral = isinstance(value, int | np.integer) and not isinstance(value, bool)
+    if integral and 0 <= int(value) < N_ACTIONS:
+        return int(value)
+    raise ActionError(f"step(): agent {agent!r}: action {reprlib.repr(value)} ({type(value).__name__}) is not "
+                      f"allowed; expected {ALLOWED_ACTIONS}")
 
 
 class MergeEnv(ParallelEnv):
@@ -92,6 +121,7 @@ class MergeEnv(ParallelEnv):
         self._window_end = 0.0  # [s] simulation time of the horizon in the running episode
         # Collisions of these classes end the episode (the paper's rule).
         self._stop_on = frozenset({KIND_AV, KIND_MERGER}) if config.sim.on_collision == "end" else frozenset()
+        self._closed = False  # close() released the process's SUMO slot: this env cannot run again
 
     def new_tracker(self, record: bool = False) -> EpisodeTracker:
         return EpisodeTracker(self.zone, self.chainage, record=record, cut_in_window=self.cfg.sim.cut_in_window)
@@ -105,12 +135,16 @@ class MergeEnv(ParallelEnv):
         return self._act_space
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
-        if seed is None:
-            seed = self._next_seed
+        if self._closed:  # restarting would take a SUMO slot that another env of this process may hold now
+            raise RuntimeError("reset() after close(): this env is closed; make a new one (cosim.parallel_env)")
+        # A plain int (numpy's would reach the summary, which json refuses) in SUMO's range, or `SeedError`
+        # (a ValueError) naming `seed`; None takes the next seed (sim.seed first).
+        seed = check_seed("seed", self._next_seed if seed is None else seed)
         self._next_seed = seed + 1
         self.episode_seed = seed
         if self._tmp is None:
-            self._tmp = Path(tempfile.mkdtemp(prefix="cosim_"))
+            self._tmp = Path(tempfile.mkdtemp(prefix="env_", dir=run_folder()))  # named after its owner: a kill -9
+            # leaves nothing that the next run does not remove
         write_episode(plan_episode(self.cfg, self.net, seed), self.cfg, self.net.desc, self.route_file)
         end_time = None if self._snap is None else self._snap.time
         extra: list[str] = []
@@ -138,11 +172,10 @@ class MergeEnv(ParallelEnv):
 
     def step(self, actions: Mapping[str, int]) -> tuple[dict, dict, dict, dict, dict]:
         if self._snap is None:
-            raise RuntimeError("step() before reset()")
+            raise RuntimeError("step() after close(): this env is closed; make a new one (cosim.parallel_env)"
+                               if self._closed else "step() before reset()")
         acting = list(self.agents)
-        missing = [a for a in acting if a not in actions]
-        if missing:
-            raise ValueError(f"step(): no action for live agents {missing}")
+        actions = self._checked_actions(actions)
         prev = self._snap
         idx = np.array([self.possible_agents.index(a) for a in acting], dtype=np.int64)
         lane_changed, invalid = self._act(prev, acting, idx, actions)
@@ -195,6 +228,22 @@ class MergeEnv(ParallelEnv):
         if self._snap is None:
             raise RuntimeError("no snapshot before reset()")
         return self._snap
+
+    def _checked_actions(self, actions: Mapping[str, Any]) -> dict[str, int]:
+        """Every live agent's action as an int, or `ActionError`. The actions of agents that are done are
+        dropped unchecked: PettingZoo's AEC form steps them with None, SuperSuit's black death and a loop over
+        the last observations hand them over too."""
+        if not isinstance(actions, Mapping):
+            raise ActionError(f"step(): expected a dict of agent -> action, got {type(actions).__name__}")
+        missing = [a for a in self.agents if a not in actions]
+        if missing:
+            raise ActionError(f"step(): no action for live agents {missing}; each takes {ALLOWED_ACTIONS}")
+        if len(actions) > len(self.agents):
+            unknown = [a for a in actions if a not in self.possible_agents]
+            if unknown:
+                raise ActionError(f"step(): unknown agent {unknown[0]!r}; this env's agents are "
+                                  f"{self.possible_agents} (live now: {self.agents}), each taking {ALLOWED_ACTIONS}")
+        return {a: checked_action(a, actions[a]) for a in self.agents}
 
     # -- step hooks ---------------------------------------------------------------------------------
     def _act(self, prev: Snapshot, acting: list[str], idx: np.ndarray,
@@ -297,6 +346,7 @@ class MergeEnv(ParallelEnv):
             shutil.rmtree(self._tmp, ignore_errors=True)
             self._tmp = None
         self._snap = None
+        self._closed = True
 
     def __del__(self) -> None:  # an env dropped without close() must not keep the process's SUMO slot
         session = getattr(self, "session", None)

@@ -5,7 +5,9 @@ Contract:
 - `TERMS` maps each term's name to its default weight and its function of a `StepChange` (what one decision
   step did to every vehicle of the snapshot), giving the term's unweighted value per vehicle (V,). Adding a
   term is one function and one line: `@term("name", weight)` above it; `reward.weights.name` then sets its
-  weight, `infos[agent]["reward_terms"]` reports it and the trainer logs it. The terms: `speed` (progress /
+  weight, `infos[agent]["reward_terms"]` reports it and the trainer logs it. This module owns the term names:
+  `cosim.config` imports nothing of it at load and checks `reward.weights` against `TERMS` when it validates
+  a config, so a term registered before the config is loaded is a key there. The terms: `speed` (progress /
   (max speed * period), in [0, 1]), `accel` (-|speed change| / (AV accel * period), every vehicle, so
   forcing humans to brake costs the social part), `lane_change` and `invalid_action` (-1, AVs only),
   `collision` (-1 if crashed), `merge` (+1 for the merging vehicle on the step it merges).

@@ -6,10 +6,12 @@ Contract: `compare(dirs, out_dir, labels)` takes evaluation folders (written by 
 merging vehicle's distance, overlaid), `training_curves.png` (when a run folder has the trainer's
 `episodes.csv`), per run `LABEL/` with the time-space diagrams, guide-AV speed profiles and top views of
 its recorded episodes, `summary.json` / `summary.csv` (all runs' metrics) and `report.md` (the table and
-the figures). Each run is summarised from its `episodes.csv` by `cosim.evaluation.store.summarize_evaluation`
-over the seeds its `summary.json` names, as `cosim evaluate` did: rows of other seeds in the file are
-left out; each run's own figures are `cosim.evaluation.plots.plot_evaluation`'s, as `cosim evaluate` draws
-them. A folder without an evaluation raises `CosimError`.
+the figures). Each run is summarised from its `episodes.csv` over the seeds its `summary.json` names, as
+`cosim evaluate` did (`cosim.evaluation.store.checked_rows`): rows of other seeds in the file are left out;
+each run's own figures are `cosim.evaluation.plots.plot_evaluation`'s, as `cosim evaluate` draws them. Before
+anything is written, a folder without an evaluation, with a summary.json that is corrupt or lacks a key, or
+whose episodes.csv is missing or holds fewer of those episodes than its summary.json counts raises
+`CosimError` naming the file (and the counts).
 """
 
 from __future__ import annotations
@@ -24,8 +26,8 @@ from tqdm import tqdm
 
 from cosim.errors import CosimError
 from cosim.evaluation import plots
-from cosim.evaluation.stats import SUMMARY_METRICS, format_table
-from cosim.evaluation.store import Evaluation, find_evaluation, summarize_evaluation
+from cosim.evaluation.stats import SUMMARY_METRICS, format_table, summarize
+from cosim.evaluation.store import Evaluation, checked_rows, find_evaluation
 from cosim.files import atomic_write_text, column, write_csv
 
 log = logging.getLogger(__name__)
@@ -39,17 +41,14 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
     names = [e.label for e in evals]
     if len(set(names)) != len(names):
         raise CosimError(f"runs need distinct labels, got {names}; pass --labels")
+    # Recomputed from episodes.csv, so every run is summarised the same way (and as `cosim evaluate` did).
+    rows = {e.label: checked_rows(e) for e in evals}
+    metrics = {e.label: summarize(rows[e.label], e.summary.get("confidence", 0.95)) for e in evals}
     mismatches = incompatibilities(evals)
     for line in mismatches:
         log.warning("runs not directly comparable: %s", line)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    # Recomputed from episodes.csv, so every run is summarised the same way (and as `cosim evaluate` did).
-    rows, metrics = {}, {}
-    for e in evals:
-        rows[e.label], metrics[e.label] = summarize_evaluation(
-            e.eval_dir, int(e.summary["first_seed"]), int(e.summary.get("requested_episodes", e.summary["episodes"])),
-            e.summary.get("confidence", 0.95))
     episodes = {e.label: len(rows[e.label]) for e in evals}
     merger = {label: column(r, "merger_distance") for label, r in rows.items()}
     figures = {"bars": plots.bars(metrics, out_dir / "bars.png"),

@@ -18,9 +18,12 @@ Contract:
   `trajectories` episodes, `sumo/episode_S/` (SUMO's tripinfo and induction-loop files) and `plots/`.
 - Resume: a second call with the same `out_dir` skips the seeds already in `episodes.csv`; a folder
   holding an evaluation of another policy / checkpoint / net / config (`config_sha256`; the folder's
-  location, `sim.output_dir`, is not part of it) is refused.
-- `workers > 1` runs episodes on `cosim.workers.WorkerPool` (libsumo runs one simulation per process); an
-  episode whose worker failed is played again by its replacement.
+  location, `sim.output_dir`, is not part of it) is refused. One writer per folder (`cosim.files.FolderLock`,
+  held from the first look at the folder to the summary): a second evaluation into it is refused while the
+  first lives.
+- `workers > 1` runs episodes on `cosim.workers.WorkerPool` (libsumo runs one simulation per process); a
+  worker that gives no step for `evaluate.step_timeout` seconds is replaced (logged), and an episode whose
+  worker failed is played again by its replacement.
 - Bad input raises a `CosimError`: episodes or workers < 1 or trajectories < 0 (a `ConfigError`), a
   checkpoint whose observation shape or agents do not fit the net/preset, a net without a merge.
 """
@@ -47,14 +50,13 @@ from cosim.environment.merge_env import MergeEnv
 from cosim.environment.policies import POLICIES
 from cosim.errors import ConfigError, CosimError, check_at_least
 from cosim.evaluation.store import config_hash, save_trajectory, scenario_hash, summarize_evaluation
-from cosim.files import AppendCsv, atomic_write_text, read_csv
+from cosim.files import AppendCsv, FolderLock, atomic_write_text, read_csv
 from cosim.progress import Heartbeat
-from cosim.workers import WorkerPool
+from cosim.workers import START_TIMEOUT, WorkerPool, keep_alive
 
 log = logging.getLogger(__name__)
 
 BASELINES = ("sumo", "idle", "random", "scripted", "courteous")
-EPISODE_TIMEOUT = 600.0  # [s] a worker silent for longer than an episode could take is replaced
 
 
 def check_counts(episodes: int, workers: int, trajectories: int, prefix: str = "") -> None:
@@ -142,6 +144,7 @@ class Runner:
         env = self.env
         act = self.policy(seed)
         obs, _ = env.reset(seed=seed)
+        keep_alive()  # in a worker: each step restarts its timeout (evaluate.step_timeout)
         # The env's own tracker gives the row; a second one records the trajectories of the plotted episodes.
         recorder = env.new_tracker(record=True) if seed in self.job.record else None
         if recorder is not None:
@@ -155,6 +158,7 @@ class Runner:
                 returns[a] += r
             if recorder is not None:
                 recorder.observe(env.snapshot, actions if env.session.drive_avs else None)
+            keep_alive()
         env.flush_outputs()
         summary = next(iter(infos.values()))["episode"]  # every agent's last info carries it
         row = {"seed": seed, "policy": self.job.policy.name, **summary,
@@ -185,6 +189,7 @@ def _play(env: MergeEnv, job_seed: tuple[Job, int]) -> dict[str, Any]:
     global _RUNNER
     job, seed = job_seed
     if _RUNNER is None or _RUNNER.job != job:
+        keep_alive(START_TIMEOUT)  # loading a trained policy takes longer than a step
         _RUNNER = Runner(job, env, worker=True)
     return _RUNNER.run(seed)
 
@@ -193,8 +198,9 @@ def run_episodes(job: Job, seeds: Sequence[int], workers: int = 1,
                  max_restarts: int = 3) -> Iterator[dict[str, Any]]:
     """Rows of the given episodes as they finish (in seed order with one worker, else round by round).
 
-    Several workers run on `cosim.workers.WorkerPool`; an episode whose worker failed is played again by the
-    replacement, up to `max_restarts` failures over the evaluation."""
+    Several workers run on `cosim.workers.WorkerPool`; a worker silent for `evaluate.step_timeout` within an
+    episode is replaced, and an episode whose worker failed is played again by the replacement, up to
+    `max_restarts` failures over the evaluation."""
     if workers <= 1 or len(seeds) <= 1:
         runner = Runner(job, _make_env(job.config))
         try:
@@ -204,7 +210,8 @@ def run_episodes(job: Job, seeds: Sequence[int], workers: int = 1,
             runner.close()
         return
     pool = WorkerPool(functools.partial(_make_env, job.config), min(workers, len(seeds)), max_restarts,
-                      timeout=EPISODE_TIMEOUT)
+                      timeout=load_config(job.config).evaluate.step_timeout, timeout_key="evaluate.step_timeout",
+                      restarts_key="an evaluation's max_restarts")
     try:
         todo = list(seeds)
         while todo:
@@ -237,40 +244,53 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
             "trained_updates": identity["trained_updates"], "model_sha256": identity["model_sha256"]}
     seeds = [seed + k for k in range(episodes)]
     job = Job(cfg.to_dict(), policy, str(out_dir), frozenset(seeds[:trajectories]))
-    Runner(job, _make_env(job.config)).close()  # bad nets and checkpoints fail here, before the folder is claimed
-    _claim(out_dir, meta, cfg)
-    csv_path = out_dir / "episodes.csv"
-    writer = AppendCsv(csv_path)  # first: it drops a half-written last row
-    done = {int(r["seed"]) for r in read_csv(csv_path)}
-    todo = [s for s in seeds if s not in done]
-    if done & set(seeds):
-        log.info("resuming %s: %d of %d episodes already done", out_dir, len(done & set(seeds)), episodes)
-    headless, heartbeat = not sys.stderr.isatty(), Heartbeat(30.0)
-    for k, row in enumerate(tqdm(run_episodes(job, todo, workers), total=len(todo), desc=f"evaluate {policy.name}",
-                                 unit="ep", leave=False, disable=headless), start=1):
-        writer.write(row)
-        if headless and heartbeat():
-            log.info("evaluate %s: %d of %d episodes", policy.name, k, len(todo))
-    rows, metrics = summarize_evaluation(out_dir, seed, episodes, confidence)
-    checks = [float(r["distance_check"]) for r in rows if r.get("distance_check") not in (None, "", "nan")]
-    summary = {**meta, "episodes": len(rows), "first_seed": seed, "requested_episodes": episodes,
-               "confidence": confidence, "metrics": metrics,
-               "distance_check_max_m": max(checks) if checks else math.nan}
-    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2, allow_nan=True) + "\n")
-    if checks and max(checks) > 0.5:
-        log.warning("our distances and SUMO's tripinfo differ by up to %.2f m", max(checks))
-    if plots:
-        from cosim.evaluation.plots import plot_evaluation  # matplotlib only when plotting
+    lock = FolderLock(out_dir, "cosim evaluate")
+    lock.acquire(create=False)  # an evaluation under way there is refused before its files are read
+    try:
+        Runner(job, _make_env(job.config)).close()  # bad nets and checkpoints fail here, before the folder is claimed
+        lock.acquire()
+        _claim(out_dir, meta, cfg)
+        csv_path = out_dir / "episodes.csv"
+        writer = AppendCsv(csv_path)  # first: it drops a half-written last row
+        done = {int(r["seed"]) for r in read_csv(csv_path, ints=("seed",))}
+        todo = [s for s in seeds if s not in done]
+        if done & set(seeds):
+            log.info("resuming %s: %d of %d episodes already done", out_dir, len(done & set(seeds)), episodes)
+        headless, heartbeat = not sys.stderr.isatty(), Heartbeat(30.0)
+        for k, row in enumerate(tqdm(run_episodes(job, todo, workers), total=len(todo),
+                                     desc=f"evaluate {policy.name}", unit="ep", leave=False, disable=headless),
+                                start=1):
+            writer.write(row)
+            if headless and heartbeat():
+                log.info("evaluate %s: %d of %d episodes", policy.name, k, len(todo))
+        rows, metrics = summarize_evaluation(out_dir, seed, episodes, confidence)
+        checks = [float(r["distance_check"]) for r in rows if r.get("distance_check") not in (None, "", "nan")]
+        summary = {**meta, "episodes": len(rows), "first_seed": seed, "requested_episodes": episodes,
+                   "confidence": confidence, "metrics": metrics,
+                   "distance_check_max_m": max(checks) if checks else math.nan}
+        atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2, allow_nan=True) + "\n")
+        if checks and max(checks) > 0.5:
+            log.warning("our distances and SUMO's tripinfo differ by up to %.2f m", max(checks))
+        if plots:
+            from cosim.evaluation.plots import plot_evaluation  # matplotlib only when plotting
 
-        plot_evaluation(out_dir, out_dir / "plots", label=policy.name, rows=rows)
-    return summary
+            plot_evaluation(out_dir, out_dir / "plots", label=policy.name, rows=rows)
+        return summary
+    finally:
+        lock.release()
 
 
 def _claim(out_dir: Path, meta: dict[str, Any], cfg: Config) -> None:
     """Write evaluation.json and config.yaml, or check that an existing evaluation is the same one."""
     path = out_dir / "evaluation.json"
     if path.is_file():
-        old = json.loads(path.read_text())
+        try:
+            old = json.loads(path.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            old = exc
+        if not isinstance(old, dict):  # what the folder evaluated is unknown: resuming could mix two evaluations
+            raise CosimError(f"{path}: not a JSON object ({old}); it records what this folder evaluated: move the "
+                             "folder away and evaluate into a new --out")
         # trained_updates, model_sha256: only where recorded (folders from before they were).
         later = ("trained_updates", "model_sha256")
         differs = [k for k in ("policy", "checkpoint", "greedy", "net", *later)

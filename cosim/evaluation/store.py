@@ -3,8 +3,10 @@
 Contract: `episodes.csv` holds one row per episode (`cosim.files.read_csv` reads it); `summarize_evaluation`
 and `pooled` pick the rows of the requested seeds and summarise them (`cosim.evaluation.stats.summarize`);
 `trajectories/seed_S.npz` holds the recorded episodes (`save_trajectory` / `load_trajectory`); `summary.json`
-names what was evaluated (`find_evaluation` reads it). `config_hash` and `scenario_hash` tell whether two
-folders evaluated the same episodes.
+names what was evaluated (`find_evaluation` reads it: a `CosimError` naming it when it is no JSON object or lacks
+a key a reader needs). `checked_rows` gives an evaluation's rows checked against its summary: a `CosimError`
+naming `episodes.csv` and both counts when the file is missing or holds fewer episodes than the summary counts.
+`config_hash` and `scenario_hash` tell whether two folders evaluated the same episodes.
 """
 
 from __future__ import annotations
@@ -31,12 +33,38 @@ class Evaluation:
     summary: dict[str, Any]
 
 
+# summary.json's keys that its readers need, with their types.
+SUMMARY_KEYS: dict[str, tuple[type, ...]] = {"first_seed": (int,), "episodes": (int,)}
+SUMMARY_OPTIONAL: dict[str, tuple[type, ...]] = {"requested_episodes": (int,), "confidence": (float, int),
+                                                 "policy": (str,)}
+
+
+def read_summary(path: Path) -> dict[str, Any]:
+    """An evaluation's summary.json, checked for what its readers need."""
+    rerun = f"run the same `cosim evaluate` into {path.parent} again to rewrite it"
+    try:
+        summary = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise CosimError(f"{path}: not valid JSON ({exc}); {rerun}") from None
+    if not isinstance(summary, dict):
+        raise CosimError(f"{path}: expected a JSON object, got {type(summary).__name__}; {rerun}")
+    missing = [k for k in SUMMARY_KEYS if k not in summary]
+    if missing:
+        raise CosimError(f"{path}: no {', '.join(missing)} (an evaluation summary has {sorted(SUMMARY_KEYS)}); "
+                         f"{rerun}")
+    for key, types in {**SUMMARY_KEYS, **SUMMARY_OPTIONAL}.items():
+        value = summary.get(key)
+        if key in summary and (isinstance(value, bool) or not isinstance(value, types)):
+            raise CosimError(f"{path}: {key} {value!r} is not {' or '.join(t.__name__ for t in types)}; {rerun}")
+    return summary
+
+
 def find_evaluation(path: Path, label: str | None = None) -> Evaluation:
     """An evaluation folder, or a run folder with one in `eval/`."""
     path = Path(path)
     for eval_dir in (path, path / "eval"):
         if (eval_dir / "summary.json").is_file():
-            summary = json.loads((eval_dir / "summary.json").read_text())
+            summary = read_summary(eval_dir / "summary.json")
             run = summary.get("run") or (str(path) if eval_dir != path else None)
             return Evaluation(label or path.name, eval_dir, None if run is None else Path(run), summary)
     raise CosimError(f"{path}: no evaluation found (summary.json here or in {path / 'eval'}); run "
@@ -59,8 +87,25 @@ def summarize_evaluation(eval_dir: Path, first_seed: int, episodes: int,
 def seed_rows(eval_dir: Path, first_seed: int, episodes: int) -> list[dict[str, str]]:
     """The episodes.csv rows of seeds `first_seed .. first_seed + episodes - 1`, one per seed, in seed order."""
     wanted = range(first_seed, first_seed + episodes)
-    by_seed = {int(r["seed"]): r for r in read_csv(Path(eval_dir) / "episodes.csv") if int(r["seed"]) in wanted}
+    rows = read_csv(Path(eval_dir) / "episodes.csv", ints=("seed",))
+    by_seed = {int(r["seed"]): r for r in rows if int(r["seed"]) in wanted}
     return [by_seed[s] for s in sorted(by_seed)]
+
+
+def checked_rows(e: Evaluation) -> list[dict[str, str]]:
+    """The rows of the seeds `e`'s summary.json names (`seed_rows`), refused (`CosimError`, naming episodes.csv
+    and both counts) when they are fewer than the episodes the summary counts: a summary of rows that are gone."""
+    counted = int(e.summary["episodes"])
+    # requested_episodes: where recorded (folders from before it was: the episodes found)
+    first, requested = int(e.summary["first_seed"]), int(e.summary.get("requested_episodes", counted))
+    path = e.eval_dir / "episodes.csv"
+    rows = seed_rows(e.eval_dir, first, requested)
+    if len(rows) < counted:
+        seeds = f"seeds {first}..{first + requested - 1}"
+        held = f"{len(rows)} episodes of {seeds}" if path.is_file() else f"not found ({seeds})"
+        raise CosimError(f"{path}: {held}, but {path.parent / 'summary.json'} counts {counted}: deleted or cut? "
+                         f"run the same `cosim evaluate` into {e.eval_dir} again to play the missing episodes")
+    return rows
 
 
 def scenario_hash(config: Mapping[str, Any]) -> str:

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from cosim.errors import SimulationError
+from cosim.files import atomic_write_text
 from cosim.sumo.net import Net
 
 TRIPINFO_FILE = "tripinfo.xml"
@@ -65,7 +66,7 @@ def episode_output_args(folder: Path, site: DetectorSite, period: float = 1e6) -
         f'    <inductionLoop id="loop_{i}" lane="{lane}" pos="{site.pos:.2f}" period="{period:g}" '
         f'file="{DETECTOR_FILE}"/>\n' for i, lane in enumerate(site.lanes))
     additional = folder / ADDITIONAL_FILE
-    additional.write_text(f"<additional>\n{loops}</additional>\n")
+    atomic_write_text(additional, f"<additional>\n{loops}</additional>\n")  # a failed write names the file
     return ["--additional-files", str(additional),
             "--tripinfo-output", str(folder / TRIPINFO_FILE),
             "--tripinfo-output.write-unfinished", "true",

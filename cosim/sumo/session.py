@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import shlex
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -89,7 +90,10 @@ class SumoSession:
                 ls.start(["sumo", *args])
                 self._started = True
         except (ls.TraCIException, ls.FatalTraCIError) as exc:
-            raise SimulationError(f"SUMO failed to start with net {self.net_file}: {exc}") from None
+            # libsumo's exception only says that SUMO stopped ("Could not parse commandline options."); SUMO's
+            # own error line, on stderr before it, names the option or file, which may not be the net's.
+            raise SimulationError(f"SUMO failed to start: {str(exc).rstrip('.')} (SUMO's own error above names "
+                                  f"the cause; its options: {shlex.join(args)})") from None
         for state in (self._static, self._commanded, self._crashed, self._crashed_period, self._pairs,
                       self._collisions, self._arrived):
             state.clear()

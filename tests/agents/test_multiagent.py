@@ -1,5 +1,6 @@
 """How the AVs' networks learn from one batch: the shared network uses every live AV's sample; the paper's
-per-AV scheme trains the learner only, freezes the others and disseminates exactly; masking; bootstrapping."""
+per-AV scheme trains the learner only, freezes the others and disseminates exactly; masking; bootstrapping;
+the same in bfloat16, within its rounding."""
 
 import dataclasses
 
@@ -13,7 +14,22 @@ OBS = (2, 4, 8, 16)
 
 
 def small_tc(**kw: object) -> TrainConfig:
-    return TrainConfig(**{"feature_dim": 32, "head_hidden": 16, "lr": 0.01, "optimizer": "adam", **kw})
+    # float32, not auto: bfloat16 kernels (auto's choice on CPUs with AVX512-BF16 / AMX) are not reproducible
+    # run to run, and these tests compare updates bit for bit.
+    return TrainConfig(**{"feature_dim": 32, "head_hidden": 16, "lr": 0.01, "optimizer": "adam",
+                          "precision": "float32", **kw})
+
+
+# bfloat16 forced, so that it runs (emulated, slowly) on any CPU. Adam's first step is lr * g / (|g| + eps): with
+# the default eps that is lr * sign(g), and a gradient within bfloat16's rounding of zero moves its parameter by
+# lr the other way; with eps far above every |g| (below 0.1 here) it is the gradient step lr / eps * g, so the
+# parameter change measures the gradient itself.
+BF16 = {"precision": "bfloat16", "optimizer_eps": 100.0, "lr": 1.0}
+# bfloat16 keeps 8 significant bits (2^-9 relative) of every layer's input, forward and backward: the gradient
+# of one update is 4.7% (in norm) off float32's here, and runs of it on bfloat16 hardware differ from each
+# other by that kind of rounding. 15% bounds it; a sample that enters or leaves the loss moves it by over 70%.
+BF16_TOL = 0.15
+LIVE = ((0, 0), (0, 1), (1, 2), (1, 0))  # (worker, agent) of live samples
 
 
 def random_batch(T: int = 3, W: int = 2, N: int = 3, seed: int = 0) -> Batch:
@@ -48,25 +64,56 @@ def trained(tc: TrainConfig, batch: Batch, n_agents: int = 3) -> tuple[dict, lis
     return stats, snapshot(policy.nets)
 
 
-@pytest.mark.parametrize("algo", ["a2c", "ppo"])
-def test_shared_network_learns_from_every_live_agents_sample(algo: str) -> None:
-    tc = small_tc(algo=algo, ppo_minibatches=1, ppo_epochs=1)
+def change(tc: TrainConfig, batch: Batch) -> tuple[dict, torch.Tensor]:
+    """The statistics of `trained` and how far it moved the shared network's parameters (flat)."""
+    torch.manual_seed(0)
+    (start,) = snapshot(MultiAgentPolicy(3, OBS, 5, tc).nets)  # `trained`'s network before its update
+    stats, (end,) = trained(tc, batch)
+    return stats, torch.cat([(end[k] - start[k]).flatten() for k in start])
+
+
+def relative(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a - b).norm() / b.norm())
+
+
+def crashed_batch() -> Batch:
     b = random_batch()
     b.valid[2:, 1, 2] = False  # agent 2 of worker 1 crashed at step 1
     b.terminated[1, 1, 2] = True
+    return b
+
+
+def with_reward_changed(b: Batch, w: int, i: int) -> Batch:
+    other = copy_batch(b)
+    other.rewards[0, w, i] += 10.0
+    return other
+
+
+@pytest.mark.parametrize("algo", ["a2c", "ppo"])
+def test_shared_network_learns_from_every_live_agents_sample(algo: str) -> None:
+    tc = small_tc(algo=algo, ppo_minibatches=1, ppo_epochs=1)
+    b = crashed_batch()
     stats, base = trained(tc, b)
     assert stats["batch"] == 3 * 2 * 3 - 1  # every valid sample of every agent, none dropped
     # A change in any one live agent's reward changes the update: each of them is in the batch.
-    for w, i in ((0, 0), (0, 1), (1, 2), (1, 0)):
-        other = copy_batch(b)
-        other.rewards[0, w, i] += 10.0
-        _, nets = trained(tc, other)
+    for w, i in LIVE:
+        _, nets = trained(tc, with_reward_changed(b, w, i))
         assert not all(torch.equal(nets[0][k], base[0][k]) for k in base[0]), (w, i)
 
 
-def test_masked_samples_do_not_enter_the_loss() -> None:
-    """Garbage in invalid samples (a crashed agent, a lost episode) must not change the update."""
-    tc = small_tc()
+@pytest.mark.parametrize("algo", ["a2c", "ppo"])
+def test_in_bfloat16_every_live_agents_sample_moves_the_update(algo: str) -> None:
+    tc = small_tc(algo=algo, ppo_minibatches=1, ppo_epochs=1, **BF16)
+    b = crashed_batch()
+    stats, base = change(tc, b)
+    assert stats["batch"] == 3 * 2 * 3 - 1
+    for w, i in LIVE:
+        _, moved = change(tc, with_reward_changed(b, w, i))
+        assert relative(moved, base) > 3 * BF16_TOL, (w, i)  # far beyond bfloat16's rounding
+
+
+def garbage_batches() -> tuple[Batch, Batch]:
+    """A batch with invalid samples (a crashed agent, a lost episode), and the same with garbage in them."""
     a = random_batch()
     a.valid[1:, 0, 0] = False  # agent 0 of worker 0 gone after step 0 (it crashed there)
     a.terminated[0, 0, 0] = True
@@ -77,9 +124,40 @@ def test_masked_samples_do_not_enter_the_loss() -> None:
         garbage[:, 1] = 1e3
     b.obs[1:, 0, 0] = 7.0
     b.actions[:, 1] = 4
-    (sa, na), (sb, nb) = trained(tc, a), trained(tc, b)
+    return a, b
+
+
+def test_masked_samples_do_not_enter_the_loss() -> None:
+    """Garbage in invalid samples must not change the update."""
+    tc = small_tc()
+    (sa, na), (sb, nb) = (trained(tc, b) for b in garbage_batches())
     assert sa["batch"] == 1 + 3 + 3 and sa["loss"] == sb["loss"]
     assert all(torch.equal(na[0][k], nb[0][k]) for k in na[0])
+
+
+def test_masked_samples_do_not_enter_a_bfloat16_update() -> None:
+    tc = small_tc(**BF16)
+    (sa, clean), (sb, dirty) = (change(tc, b) for b in garbage_batches())
+    assert sa["batch"] == sb["batch"] == 1 + 3 + 3
+    assert sb["loss"] == pytest.approx(sa["loss"], rel=1e-3) and relative(dirty, clean) < BF16_TOL
+
+
+@pytest.mark.parametrize("algo", ["a2c", "ppo"])
+def test_a_bfloat16_update_is_close_to_the_float32_one_and_keeps_float32_weights(algo: str) -> None:
+    tc = small_tc(algo=algo, ppo_minibatches=1, ppo_epochs=1, **BF16)
+    b = crashed_batch()
+    s16, d16 = change(tc, b)
+    s32, d32 = change(tc.model_copy(update={"precision": "float32"}), b)
+    # The loss is of the initial network, whose outputs are tiny: bfloat16 leaves it within 1e-5 (measured).
+    assert s16["loss"] == pytest.approx(s32["loss"], rel=1e-3) and relative(d16, d32) < BF16_TOL
+    torch.manual_seed(0)
+    policy = MultiAgentPolicy(3, OBS, 5, tc)
+    policy.update(b, tc, update=0, progress=0.0)
+    states = [v for s in policy.optimizers[0].state.values() for v in s.values() if v.dim() > 0]
+    assert policy.nets[0].bf16 and states
+    assert all(t.dtype == torch.float32 for t in [*policy.nets[0].state_dict().values(), *states])
+    _, logp, values = policy.act(b.obs[0, 0], torch.arange(3), update=1)
+    assert logp.dtype == values.dtype == torch.float32
 
 
 def test_truncated_samples_bootstrap_from_their_final_value() -> None:

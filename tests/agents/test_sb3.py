@@ -60,3 +60,16 @@ def test_sb3_trains_on_the_env_and_its_model_evaluates_like_any_policy(tmp_path:
     again = subprocess.run([sys.executable, "scripts/train_sb3.py", "--config", "configs/smoke.yaml",
                             "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert again.returncode == 2 and "holds a model.zip already" in again.stderr and "Traceback" not in again.stderr
+
+
+def test_a_file_that_is_no_sb3_model_is_one_clear_error(tmp_path: Path) -> None:
+    policy = tmp_path / "policy.pt"  # a zip too, as torch.save writes it, but without SB3's data entry
+    torch.save({"format": "cosim-policy", "nets": []}, policy)
+    with pytest.raises(ConfigError, match=r"policy.pt: a PyTorch file, not a Stable-Baselines3 model; for cosim's "
+                                          r"own policy.pt or checkpoint.pt use --policy checkpoint"):
+        load_actor(policy, (4, 3, 64, 512), 5)
+    text = tmp_path / "model.zip"
+    text.write_text("not a zip\n")
+    with pytest.raises(ConfigError, match=r"model.zip: not a zip file; --policy sb3 takes a Stable-Baselines3 "
+                                          r"model, the .zip that scripts/train_sb3.py saves"):
+        load_actor(text, (4, 3, 64, 512), 5)

@@ -174,13 +174,13 @@ def test_ctrl_c_finishes_the_update_checkpoints_and_resumes_bitwise(tmp_path: Pa
     assert episode_rows(tmp_path / "whole") == episode_rows(tmp_path / "cut")
 
 
-def test_a_second_ctrl_c_stops_at_once_and_keeps_the_last_whole_checkpoint(tmp_path: Path,
-                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_second_ctrl_c_stops_at_once_and_checkpoints_the_last_complete_update(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     signal_during_update(monkeypatch, at=4, times=2)
     result = train(cfg_with(checkpoint_every=2), tmp_path / "run", workers=1, episodes=100,
                    env_factory=make_fake_env(n_agents=2), progress=False)
-    assert result.interrupted
-    assert read_checkpoint(result.checkpoint)["counters"]["updates"] == 2  # not the half-done update 4
+    assert result.interrupted and result.updates == 3
+    assert read_checkpoint(result.checkpoint)["counters"]["updates"] == 3  # not the half-done update 4
 
 
 def test_cli_arguments_reach_the_trainer(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -3,12 +3,24 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from cosim.config import OBSERVATION_PRESETS, Config, EvaluateConfig, TrainConfig, load_config
-from cosim.errors import ConfigError
+from cosim.config import (
+    MAX_OBSERVATION_VALUES,
+    OBSERVATION_PRESETS,
+    SEED_MAX,
+    Config,
+    EvaluateConfig,
+    TrainConfig,
+    check_seed,
+    load_config,
+)
+from cosim.errors import ConfigError, SeedError
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -154,3 +166,121 @@ def test_json_schema_states_units_and_bounds() -> None:
     assert defs["SimConfig"]["properties"]["step_length"]["exclusiveMinimum"] == 0
     assert defs["TrainConfig"]["properties"]["gamma"]["maximum"] == 1
     assert defs["TrainConfig"]["properties"]["algo"]["enum"] == ["a2c", "ppo"]
+
+
+@pytest.mark.parametrize("key", ["sim.seed", "train.seed", "evaluate.seed"])
+def test_seed_keys_take_what_sumo_takes(key: str) -> None:
+    episodes = {"evaluate.episodes": 1}  # evaluate.seed leaves room for its episodes' seeds
+    assert load_config(None, {key: 0, **episodes}) is not None
+    assert load_config(None, {key: SEED_MAX, **episodes}) is not None
+    for bad in (-1, SEED_MAX + 1, 3_000_000_000):
+        with pytest.raises(ConfigError) as caught:
+            load_config(None, {key: bad, **episodes})
+        assert str(caught.value) == (f"{key}: expected an integer in [0, 2147483647] (SUMO's --seed is a 32-bit "
+                                     f"signed integer), got {bad}")
+    with pytest.raises(ConfigError, match=f"{key}: expected an integer, got True"):
+        load_config(None, {key: True})
+
+
+def test_evaluation_seeds_fit_with_their_episodes() -> None:
+    assert load_config(None, {"evaluate.seed": SEED_MAX - 99}).evaluate.seed == SEED_MAX - 99  # 100 episodes
+    with pytest.raises(ConfigError, match=r"evaluate.seed: expected an integer in \[0, 2147483548\], so that the "
+                                          r"seeds of all 100 episodes fit .*got 2147483549"):
+        load_config(None, {"evaluate.seed": SEED_MAX - 98})
+
+
+def test_check_seed_is_the_one_check_of_a_seed() -> None:
+    for good in (0, 7, SEED_MAX, np.int64(7), np.uint32(7)):
+        seed = check_seed("seed", good)
+        assert seed == good and type(seed) is int
+    for bad in (-1, SEED_MAX + 1, 3.0, "3", True, None, np.float64(3)):
+        with pytest.raises(SeedError, match=r"^seed: expected an integer in \[0, 2147483647\]"):
+            check_seed("seed", bad)
+    assert issubclass(SeedError, ConfigError) and issubclass(SeedError, ValueError)
+    assert check_seed("--seed", SEED_MAX - 9, 10) == SEED_MAX - 9
+    with pytest.raises(SeedError, match=r"--seed: expected an integer in \[0, 2147483638\], so that the seeds of "
+                                        r"all 10 episodes fit"):
+        check_seed("--seed", SEED_MAX - 8, 10)
+    seed_schema = Config.model_json_schema()["$defs"]["SimConfig"]["properties"]["seed"]
+    assert (seed_schema["minimum"], seed_schema["maximum"]) == (0, SEED_MAX)
+
+
+def test_a_key_given_twice_is_refused(tmp_path: Path) -> None:
+    cases = {
+        "sim:\n  seed: 1\nscenario:\n  n_avs: 2\nsim:\n  horizon: 5\n": "line 5, column 1: key sim given twice "
+                                                                     "(first on line 1)",
+        "sim:\n  seed: 1\n  seed: 2\n": "line 3, column 3: key sim.seed given twice (first on line 2)",
+        "reward:\n  weights: {speed: 1, speed: 2}\n": "line 2, column 23: key reward.weights.speed given twice "
+                                                     "(first on line 2)",
+    }
+    for text, message in cases.items():
+        (tmp_path / "c.yaml").write_text(text)
+        with pytest.raises(ConfigError) as caught:
+            load_config(tmp_path / "c.yaml")
+        assert str(caught.value) == f"config file {tmp_path / 'c.yaml'}: not valid YAML: {message}"
+    # ... in a base file too, named as the file it is in.
+    (tmp_path / "child.yaml").write_text("base: c.yaml\n")
+    with pytest.raises(ConfigError, match=r"c\.yaml: not valid YAML: line 2, column 23: key reward.weights.speed"):
+        load_config(tmp_path / "child.yaml")
+    with pytest.raises(ConfigError, match=r"override reward.weights: .* key speed given twice"):
+        load_config(None, ["reward.weights={speed: 1, speed: 2}"])
+    # A YAML merge key is an override on purpose, not a key given twice.
+    (tmp_path / "merge.yaml").write_text("sim: &s {seed: 1, horizon: 5}\nevaluate:\n  <<: {seed: 3, episodes: 2}\n"
+                                         "  seed: 4\n")
+    cfg = load_config(tmp_path / "merge.yaml")
+    assert (cfg.sim.seed, cfg.evaluate.seed, cfg.evaluate.episodes) == (1, 4, 2)
+
+
+def test_unreadable_yaml_is_one_line_naming_where(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_bytes(b"sim:\n  seed: 1\n# caf\xe9\n")
+    with pytest.raises(ConfigError) as caught:
+        load_config(bad)
+    assert str(caught.value) == f"config file {bad}: not UTF-8 text (byte 0xe9 on line 3)"
+    bad.write_text("sim:\n  seed: [1, 2\n")
+    with pytest.raises(ConfigError) as caught:
+        load_config(bad)
+    assert str(caught.value) == (f"config file {bad}: not valid YAML: line 3, column 1: expected ',' or ']', but got "
+                                 "'<stream end>' (while parsing a flow sequence from line 2, column 9)")
+    with pytest.raises(ConfigError) as caught:
+        load_config(None, ["reward.phi=[1,2"])
+    assert str(caught.value) == ("override reward.phi: '[1,2' is not a YAML value: column 5: expected ',' or ']', "
+                                 "but got '<stream end>' (while parsing a flow sequence from column 1)")
+
+
+def test_observation_that_cannot_fit_is_refused_at_load() -> None:
+    with pytest.raises(ConfigError) as caught:
+        load_config(None, {"observation": {"frames": 100000, "height_px": 4096, "width_px": 4096}})
+    assert str(caught.value).startswith(
+        "observation: frames x channels x height_px x width_px = 100000 x 4 x 4096 x 4096 = 6,710,886,400,000 "
+        f"values per agent, more than {MAX_OBSERVATION_VALUES:,} (64 MiB per agent as float32")
+    # The paper's size, and well above it, stay allowed; the limit is the limit.
+    paper = load_config(None, {"observation.preset": "paper"}).observation
+    assert paper.frames * len(paper.channels) * paper.height_px * paper.width_px * 12 < MAX_OBSERVATION_VALUES
+    load_config(None, {"observation": {"frames": 1, "channels": ["road"], "height_px": 4096, "width_px": 4096}})
+    with pytest.raises(ConfigError, match="observation: frames x channels"):
+        load_config(None, {"observation": {"frames": 1, "channels": ["road"], "height_px": 4096, "width_px": 4097}})
+
+
+def test_inconsistent_timing_is_refused() -> None:
+    for sim, message in [
+        ({"step_length": 5, "decision_period": 5, "horizon": 1}, "sim.step_length: must be <= 1, got 5"),
+        ({"decision_period": 5, "horizon": 1}, "sim.horizon: must be at least decision_period (5 s), got 1 s"),
+        ({"horizon": 10.5}, "sim.horizon: must be a whole number of decision periods (decision_period = 1 s), got "
+                            "10.5 s = 10.5 decision periods"),
+    ]:
+        with pytest.raises(ConfigError) as caught:
+            load_config(None, {"sim": sim})
+        assert str(caught.value) == message
+    assert load_config(None, {"sim": {"step_length": 1, "decision_period": 2, "horizon": 4}}).sim.horizon == 4
+    # These rules, the seeds' and the observation's keep every shipped experiment valid.
+    for path in sorted((ROOT / "configs").glob("*.yaml")):
+        load_config(path)
+
+
+def test_config_does_not_import_the_reward_module() -> None:
+    # The reward module owns the term names; the config looks them up only when it judges weights.
+    code = ("import sys, cosim.config; assert 'cosim.environment.reward' not in sys.modules; "
+            "cosim.config.load_config(None, {'reward.weights': {'merge': 1.0}}); "
+            "assert 'cosim.environment.reward' in sys.modules")
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -1,8 +1,15 @@
-"""Rollout workers over the fake env: shared-memory observations, PettingZoo semantics, failures and restarts."""
+"""Rollout workers over the fake env: shared-memory observations, PettingZoo semantics, failures and restarts,
+beats within long calls, temporary files named after their owner."""
 
 import functools
+import logging
 import os
+import shutil
 import signal
+import subprocess
+import sys
+import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -10,13 +17,15 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 import cosim
-from agents.fake_env import CueEnv, make_fake_env
+import cosim.workers
+from agents.fake_env import CueEnv, make_fake_env, play_episode
 from agents.train import episode_seed
 from cosim.config import EVAL_SEED_START
 from cosim.errors import NetError, SimulationError
-from cosim.workers import START_ATTEMPTS, WorkerPool
+from cosim.workers import START_ATTEMPTS, WorkerPool, remove_leftovers, run_folder
 
 pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
+
 
 def test_fake_env_passes_the_pettingzoo_parallel_api_test() -> None:
     parallel_api_test(CueEnv(n_agents=3), num_cycles=20)
@@ -108,3 +117,104 @@ def test_training_seeds_stay_below_evaluation_seeds() -> None:
     assert all(0 <= s < EVAL_SEED_START for s in seeds)
     # Fixed across processes and versions: a run resumed elsewhere continues with the same episodes.
     assert episode_seed(3, 10, 2) == 1206495
+
+
+def test_a_long_call_with_quick_steps_does_not_time_out() -> None:
+    # 40 steps of 0.1 s: an episode of 4 s, twice the timeout, each step far within it.
+    pool = WorkerPool(make_fake_env(horizon=40, step_sleep=0.1), workers=2, timeout=2.0)
+    try:
+        pool.send_call([0, 1], play_episode, [0, 1])
+        assert pool.recv([0, 1], lost=lambda: None) == [40, 40] and pool.restarts == 0
+    finally:
+        pool.close()
+
+
+@pytest.mark.slow  # over 10 s: CI runs it with the long tests
+def test_a_stopped_worker_within_a_call_is_replaced_naming_the_setting(caplog: pytest.LogCaptureFixture) -> None:
+    pool = WorkerPool(make_fake_env(horizon=100, step_sleep=0.05), workers=2, timeout=2.0,
+                      timeout_key="evaluate.step_timeout")
+    try:
+        pool.send_call([0, 1], play_episode, [0, 1])
+        time.sleep(0.5)
+        os.kill(pool.pid(1), signal.SIGSTOP)
+        with caplog.at_level(logging.WARNING, logger="cosim.workers"):
+            assert pool.recv([0, 1], lost=lambda: None) == [100, None] and pool.restarts == 1
+        assert "(rollout-1: no answer in 2 s (evaluate.step_timeout)); replacing it" in caplog.text
+        pool.send_call([1], play_episode, [1])  # the replacement plays the episode again
+        assert pool.recv([1], lost=lambda: None) == [100]
+    finally:
+        pool.close()
+
+
+def _owned(pid: int, start: int, rest: str = "") -> str:
+    return f"cosim_{pid}-{start}{rest}"
+
+
+def test_a_pools_files_are_named_after_its_process() -> None:
+    start = int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+    me = _owned(os.getpid(), start)
+    pool = WorkerPool(make_fake_env(), workers=1)
+    try:
+        assert run_folder() == Path(tempfile.gettempdir()) / me
+        assert Path(pool._tmp_root).parent == run_folder()
+        assert all(Path(f).name.startswith(f"{me}_obs_") for f in pool._files) and len(pool._files) == 2
+        remove_leftovers()
+        assert Path(pool._tmp_root).is_dir() and all(Path(f).exists() for f in pool._files)  # alive: kept
+    finally:
+        pool.close()
+    assert not Path(pool._tmp_root).exists() and not any(Path(f).exists() for f in pool._files)
+
+
+def test_leftovers_of_dead_owners_are_removed_and_no_others(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    tmp, shm = tmp_path / "tmp", tmp_path / "shm"
+    tmp.mkdir(), shm.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp))
+    monkeypatch.setattr(cosim.workers, "SHM", shm)
+    gone = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(0.3)"])
+    gone_start = int(Path(f"/proc/{gone.pid}/stat").read_text().rsplit(")", 1)[1].split()[19])
+    gone.wait()
+    me, my_start = os.getpid(), int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
+    dead = [tmp / _owned(gone.pid, gone_start), shm / _owned(gone.pid, gone_start, "_obs_ab12"),
+            tmp / _owned(me, my_start + 1),  # this pid, but another process's: pid reuse
+            tmp / "pymp-dead1234"]  # multiprocessing's folder of a dead owner, named in its record
+    live = [tmp / _owned(me, my_start), shm / _owned(me, my_start, "_obs_cd34")]
+    others = [tmp / "pymp-other123", tmp / "cosim_obs_xyz", shm / "cosim_obs_xyz", tmp / "cosim_bench_q1",
+              tmp / "cosim_12x-34", tmp / "ray"]
+    for path in dead + live + others:
+        if "_obs_" in path.name:
+            path.write_bytes(b"0")
+        else:
+            path.mkdir()
+            (path / "file").write_text("x")
+    (dead[0] / "pymp").write_text(f"{dead[3]}\n")
+    (dead[2] / "pymp").write_text(f"{others[0]}x\n")  # not a folder beside it: nothing else is touched
+    assert sorted(remove_leftovers()) == sorted(dead[:3])
+    assert not any(p.exists() for p in dead) and all(p.exists() for p in live + others)
+
+
+@pytest.mark.parametrize("deep", [False, True])
+def test_multiprocessing_folder_goes_into_the_run_folder_and_all_goes_at_exit(deep: bool) -> None:
+    # A socket path may hold 107 bytes: under a deep TMPDIR multiprocessing's folder stays beside, recorded.
+    base = Path(tempfile.mkdtemp(prefix="w", dir="/tmp"))
+    tmpdir = base / ("d" * 60 if deep else "")
+    tmpdir.mkdir(exist_ok=True)
+    script = ("import multiprocessing.util as u, os, sys\n"
+              "from agents.fake_env import make_fake_env\n"
+              "from cosim.workers import WorkerPool, run_folder\n"
+              "for method in ('forkserver', 'spawn'):\n"
+              "    pool = WorkerPool(make_fake_env(), 1, start_method=method)\n"
+              "    pool.send_reset([0], [0])\n"
+              "    assert not pool.recv([0])[0].lost\n"
+              "    pool.close()\n"
+              "print(run_folder(), u.get_temp_dir(), sorted(os.listdir(run_folder())))\n")
+    try:
+        proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                              env={**os.environ, "TMPDIR": str(tmpdir)}, cwd=Path(__file__).parents[2])
+        assert proc.returncode == 0 and not proc.stderr, proc.stderr
+        folder, pymp, inside = proc.stdout.split(" ", 2)
+        assert Path(folder).parent == tmpdir and Path(pymp).name.startswith("pymp-")
+        assert Path(pymp).parent == (tmpdir if deep else Path(folder))
+        assert ("'pymp'" in inside) == deep  # the record of where it is
+        assert list(tmpdir.iterdir()) == []  # both removed at exit
+    finally:
+        shutil.rmtree(base)

@@ -22,11 +22,12 @@ SMOKE = str(Path(__file__).resolve().parents[2] / "configs" / "smoke.yaml")
 
 @pytest.fixture(scope="module")
 def smoke_run(tmp_path_factory: pytest.TempPathFactory, cli_class: type) -> Path:
-    """A finished 4-episode smoke run (real SUMO, two workers)."""
+    """A finished 4-episode smoke run (real SUMO, two workers), in float32: the bitwise resume below continues
+    it, and bfloat16 (precision auto on CPUs with AVX512-BF16 / AMX) is not reproducible run to run."""
     tmp = tmp_path_factory.mktemp("smoke_run")
     cli = cli_class(tmp)
     proc = cli.run("train", "--config", SMOKE, "--out", "run",
-                   *cli.settings("train.episodes=4", "train.checkpoint_every=2"))
+                   *cli.settings("train.episodes=4", "train.checkpoint_every=2", "train.precision=float32"))
     assert proc.returncode == 0, proc.stderr
     return tmp / "run"
 
@@ -58,7 +59,8 @@ def test_refused_resume_and_refused_outputs_leave_the_run_unchanged(smoke_run: P
     before = cli.folder_state(smoke_run)
     tmp = smoke_run.parent
     cli.assert_clean_error(cli.run("train", "--config", SMOKE, "--out", "run", "--resume",
-                                   *cli.settings("train.episodes=8", "scenario.n_avs=3")), "scenario.n_avs: 2 -> 3")
+                                   *cli.settings("train.episodes=8", "scenario.n_avs=3", "train.precision=float32")),
+                           "scenario.n_avs: 2 -> 3")
     cli.assert_clean_error(cli.run("train", "--config", SMOKE, "--out", "run", "--set", "train.episodes=8"),
                            "exists already")
     (tmp / "taken").write_text("mine\n")
@@ -69,7 +71,8 @@ def test_refused_resume_and_refused_outputs_leave_the_run_unchanged(smoke_run: P
 
 
 def test_resume_on_real_sumo_is_bitwise_the_uninterrupted_run(smoke_run: Path, cli: Any, tmp_path: Path) -> None:
-    common = ("--config", SMOKE, *cli.settings("train.checkpoint_every=2", "train.episodes=8"))
+    common = ("--config", SMOKE,
+              *cli.settings("train.checkpoint_every=2", "train.episodes=8", "train.precision=float32"))
     assert cli.run("train", *common, "--out", "whole").returncode == 0
     split = tmp_path / "split"
     split.mkdir()

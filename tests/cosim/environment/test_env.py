@@ -12,7 +12,7 @@ from pettingzoo.test import parallel_api_test
 
 import cosim
 from cosim.environment.control import Action
-from cosim.environment.merge_env import MergeEnv
+from cosim.environment.merge_env import ActionError, MergeEnv
 from cosim.environment.policies import scripted_policy
 from cosim.environment.tracker import EpisodeTracker
 from cosim.errors import SimulationError
@@ -340,3 +340,71 @@ def test_episode_summary_is_the_trackers_row_over_every_vehicle() -> None:
     # Vehicles inserted after the reset (the inflow) count too.
     assert set(mine.distance) > at_reset
     assert summary["mean_distance"] == pytest.approx(np.mean(list(mine.distance.values())))
+
+
+@pytest.mark.parametrize("bad", [1.7, "1", None, np.array([1, 2]), np.array([1]), 5, -1, True, np.float64(1.0)])
+def test_step_refuses_what_is_not_an_action_naming_the_agent(env: MergeEnv, bad: object) -> None:
+    env.reset(seed=0)
+    time = env.snapshot.time
+    actions = {**dict.fromkeys(env.agents, int(Action.IDLE)), "av_1": bad}
+    with pytest.raises(ActionError, match=r"agent 'av_1'.*0\.\.4 \(0 LANE_LEFT, 1 IDLE.*4 DECELERATE\)") as caught:
+        env.step(actions)
+    assert isinstance(caught.value, ValueError)  # what gymnasium-style callers catch
+    assert env.snapshot.time == time  # refused before SUMO moved: the episode goes on
+    # numpy integers, 0-d arrays and Action members are actions (SB3 and SuperSuit pass numpy ones).
+    _, _, term, trunc, _ = env.step({"av_0": np.int64(3), "av_1": np.array(1), "av_2": Action.LANE_LEFT})
+    assert set(term) == set(trunc) == {"av_0", "av_1", "av_2"}
+
+
+def test_step_refuses_an_unknown_agent_and_ignores_one_that_is_done(env: MergeEnv) -> None:
+    env.reset(seed=0)
+    idle = dict.fromkeys(env.agents, int(Action.IDLE))
+    with pytest.raises(ActionError, match=r"unknown agent 'bogus'.*\['av_0', 'av_1', 'av_2'\].*0 LANE_LEFT"):
+        env.step({**idle, "bogus": 1})
+    with pytest.raises(ActionError, match=r"no action for live agents \['av_2'\]"):
+        env.step({"av_0": 1, "av_1": 1})
+    libsumo.vehicle.remove("av_0")  # av_0 leaves: done at the next step
+    _, _, term, _, _ = env.step(idle)
+    assert term["av_0"] and "av_0" not in env.agents
+    # A done agent's action, None as PettingZoo's AEC form gives it, is ignored.
+    _, _, term, _, _ = env.step({**dict.fromkeys(env.agents, int(Action.IDLE)), "av_0": None})
+    assert "av_0" not in term
+
+
+def test_a_closed_env_says_so() -> None:
+    env = cosim.parallel_env(FREE, SMALL)
+    env.reset(seed=0)
+    env.close()
+    with pytest.raises(RuntimeError, match=r"step\(\) after close\(\): this env is closed"):
+        env.step(dict.fromkeys(env.possible_agents, 1))
+    with pytest.raises(RuntimeError, match=r"reset\(\) after close\(\): this env is closed"):
+        env.reset(seed=0)
+    env.close()  # closing twice is fine
+
+
+@pytest.mark.parametrize("bad", [3.0, "3", -1, True, 2**31, np.float64(3.0)],
+                         ids=["float", "str", "negative", "bool", "above 32 bits", "numpy float"])
+def test_reset_refuses_a_seed_sumo_would_not_take(env: MergeEnv, bad: object) -> None:
+    from cosim.errors import SeedError
+
+    with pytest.raises(SeedError, match=r"^seed: expected an integer in \[0, 2147483647\]") as caught:
+        env.reset(seed=bad)
+    assert isinstance(caught.value, ValueError)  # what gymnasium-style callers catch
+    assert not env.agents  # refused before an episode began
+    _, info = env.reset()  # the env stays usable, from the config's seed
+    assert info["av_0"]["seed"] == env.cfg.sim.seed
+
+
+def test_a_numpy_seed_gives_a_plain_int_summary() -> None:
+    import json
+
+    env = cosim.parallel_env(FREE, {**SMALL, "sim.horizon": 2.0})
+    try:
+        _, info = env.reset(seed=np.int64(5))
+        while env.agents:
+            _, _, _, _, info = env.step(dict.fromkeys(env.agents, int(Action.IDLE)))
+    finally:
+        env.close()
+    summary = next(iter(info.values()))["episode"]
+    assert type(summary["seed"]) is int and summary["seed"] == 5
+    assert json.loads(json.dumps(summary))["seed"] == 5

@@ -1,0 +1,111 @@
+"""Bad config and command-line input through the `cosim` command, as a user meets it: one line naming the input
+and what is allowed, exit 2, before anything runs (no SUMO, no training), and nothing written: the output folder
+not created, every file in the working folder as it was, nothing left in the temporary folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from cosim.config import SEED_MAX
+
+SMOKE = str(Path(__file__).resolve().parents[2] / "configs" / "smoke.yaml")
+SEEDS = f"expected an integer in [0, {SEED_MAX}] (SUMO's --seed is a 32-bit signed integer), got"
+
+# Config files a case may name: written into the working folder before the command runs.
+FILES = {
+    "latin1.yaml": f"base: {SMOKE}\nsim:\n  seed: 1  # caf\xe9\n".encode("latin-1"),
+    "twice.yaml": f"base: {SMOKE}\nsim:\n  seed: 1\nscenario:\n  n_hvs: 2\nsim:\n  horizon: 5\n".encode(),
+    "twice_in_sim.yaml": f"base: {SMOKE}\nsim:\n  seed: 1\n  horizon: 5\n  seed: 2\n".encode(),
+    "unclosed.yaml": f"base: {SMOKE}\nsim: [1, 2\n".encode(),
+    # A training run folder whose config.yaml someone edited by hand: `evaluate --run` reads it.
+    "run/config.yaml": f"base: {SMOKE}\ntrain:\n  seed: 1\ntrain:\n  seed: 2\n".encode(),
+}
+
+
+def _run_scenario(*args: str) -> list[str]:
+    return ["run-scenario", "--config", SMOKE, "--episodes", "1", *args]
+
+
+def _evaluate(*args: str) -> list[str]:
+    return ["evaluate", "--config", SMOKE, "--policy", "idle", "--out", "out", *args]
+
+
+def _train(*args: str) -> list[str]:
+    return ["train", "--out", "out", *args]
+
+
+CASES = {
+    # Seeds: one range everywhere, checked before SUMO starts or anything is written.
+    "run-scenario --seed": (_run_scenario("--seed", "-1", "--save-routes", "out"), f"--seed: {SEEDS} -1"),
+    "run-scenario --seed and --episodes": (
+        _run_scenario("--seed", str(SEED_MAX), "--episodes", "2", "--save-routes", "out"),
+        f"--seed: expected an integer in [0, {SEED_MAX - 1}], so that the seeds of all 2 episodes fit"),
+    "sim.seed negative": (_run_scenario("--set", "sim.seed=-3"), f"sim.seed: {SEEDS} -3"),
+    "sim.seed above 32 bits": (_run_scenario("--set", "sim.seed=3000000000"), f"sim.seed: {SEEDS} 3000000000"),
+    "evaluate --seed": (_evaluate("--seed", "-5"),
+                        "--seed: expected an integer in [0, 2147483548], so that the seeds of all 100"),
+    "evaluate --seed and --episodes": (_evaluate("--seed", str(SEED_MAX - 5), "--episodes", "8"),
+                                       "so that the seeds of all 8 episodes fit"),
+    "evaluate.seed": (_evaluate("--set", f"evaluate.seed={SEED_MAX}"),
+                      "evaluate.seed: expected an integer in [0, 2147483548]"),
+    "train.seed": (_train("--config", SMOKE, "--set", "train.seed=-1"), f"train.seed: {SEEDS} -1"),
+    "sweep --seeds": (["sweep", "--config", SMOKE, "--phi", "0", "--seeds", "0", "-1", "--budget-min", "1",
+                       "--out", "out"], f"--seeds: {SEEDS} -1"),
+    # YAML that cannot be read: the file or the key, and where.
+    "--set unparsable": (_train("--config", SMOKE, "--set", "reward.phi=[1,2"),
+                         "override reward.phi: '[1,2' is not a YAML value: column 5: expected ',' or ']'"),
+    "not UTF-8": (_train("--config", "latin1.yaml"), "config file latin1.yaml: not UTF-8 text (byte 0xe9 on line 3)"),
+    "YAML syntax": (_train("--config", "unclosed.yaml"),
+                    "config file unclosed.yaml: not valid YAML: line 3, column 1: expected"),
+    "section twice": (_train("--config", "twice.yaml"),
+                      "twice.yaml: not valid YAML: line 6, column 1: key sim given twice (first on line 2)"),
+    "key twice in a section": (_train("--config", "twice_in_sim.yaml"),
+                               "line 5, column 3: key sim.seed given twice (first on line 3)"),
+    "run's config.yaml": (["evaluate", "--run", "run", "--policy", "idle", "--episodes", "1"],
+                          "run/config.yaml: not valid YAML: line 4, column 1: key train given twice"),
+    # Values that would fail deep inside (numpy's allocation) or run something else than asked.
+    "observation size": (
+        _train("--config", SMOKE, *["--set", "observation.frames=100000", "--set", "observation.height_px=4096",
+                                    "--set", "observation.width_px=4096"]),
+        "observation: frames x channels x height_px x width_px = 100000 x 4 x 4096 x 4096 = 6,710,886,400,000 "
+        "values per agent, more than 16,777,216"),
+    "step_length": (_run_scenario("--set", "sim.step_length=5", "--set", "sim.decision_period=5",
+                                  "--set", "sim.horizon=1"), "sim.step_length: must be <= 1, got 5"),
+    "horizon below a decision": (_run_scenario("--set", "sim.decision_period=5", "--set", "sim.horizon=1"),
+                                 "sim.horizon: must be at least decision_period (5 s), got 1 s"),
+    "horizon not whole decisions": (_run_scenario("--set", "sim.horizon=10.5"),
+                                    "sim.horizon: must be a whole number of decision periods"),
+}
+NEEDS_SUMO = {
+    # This one loads the net before it can know the seeds of every episode.
+    "sim.seed and episodes": (_run_scenario("--set", f"sim.seed={SEED_MAX}", "--episodes", "2"),
+                              "sim.seed: expected an integer in [0, 2147483646], so that the seeds of all 2"),
+    # SUMO refuses an option: its own error line names it; ours must not blame the net.
+    "sim.sumo_args": (_run_scenario("--set", "sim.sumo_args=[--no-such-option, '1']"),
+                      "SUMO failed to start: Could not parse commandline options (SUMO's own error above names the "
+                      "cause; its options: -n "),
+}
+
+
+@pytest.mark.parametrize("args,expected", [
+    *(pytest.param(*case, id=name) for name, case in CASES.items()),
+    *(pytest.param(*case, id=name, marks=pytest.mark.sumo) for name, case in NEEDS_SUMO.items()),
+])
+def test_bad_input_is_one_line_before_anything_is_written(cli: Any, tmp_path: Path, args: list[str],
+                                                          expected: str) -> None:
+    for name, data in FILES.items():
+        (tmp_path / name).parent.mkdir(exist_ok=True)
+        (tmp_path / name).write_bytes(data)
+    before = _state(cli, tmp_path)
+    cli.assert_clean_error(cli.run(*args, timeout=120), expected)
+    assert not (tmp_path / "out").exists() and not (tmp_path / "run" / "eval").exists()
+    assert _state(cli, tmp_path) == before
+    assert cli.no_leftovers()
+
+
+def _state(cli: Any, folder: Path) -> dict[str, str]:
+    # The command's TMPDIR is the Cli's to check (torch may keep its caches there).
+    return {k: v for k, v in cli.folder_state(folder).items() if not k.startswith("tmpdir/")}
