@@ -111,8 +111,7 @@ class _EnvActor:
     def __init__(self, env_factory: EnvFactory) -> None:
         # The env's temporary files go into this actor process's folder, removed by `close`; an actor that died
         # (killed, SUMO crash) never got there: the folder names its process, and the next actor or pool
-        # started on that machine removes it (`cosim.workers.remove_leftovers`).
-        remove_leftovers()
+        # started on that machine removes it (`run_folder` does, as it makes this one).
         self.tmp = str(run_folder())
         tempfile.tempdir = self.tmp
         self.error: Exception | None = None

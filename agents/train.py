@@ -55,7 +55,7 @@ from agents.config import TrainConfig, check_device, train_config, use_bf16
 from agents.logs import RunLogger, cut_logs, log_gaps
 from agents.multiagent import Batch, MultiAgentPolicy
 from agents.rollout import Backend
-from cosim.config import EVAL_SEED_START, Config
+from cosim.config import EVAL_SEED_START, Config, read_yaml
 from cosim.errors import ConfigError
 from cosim.files import FolderLock, atomic_write_text, stale_temporaries
 from cosim.progress import Heartbeat
@@ -113,17 +113,14 @@ def config_changes(saved: Path, new: dict[str, Any]) -> dict[str, tuple[Any, Any
     """Dotted key -> (the run's value, the new one) for every key that differs, RESUMABLE keys left out."""
     if not saved.is_file():
         raise CheckpointError(f"--resume: {saved} not found; the run folder is incomplete")
-    problem = None
+    # The run's config, which a resume compares with the user's: what to do when it is damaged.
+    hint = "it is the run's config, which a resume compares with yours: restore it, or train into another --out"
     try:
-        loaded = yaml.safe_load(saved.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        mark = getattr(exc, "problem_mark", None)
-        loaded, problem = None, "not YAML" + (f" (line {mark.line + 1}: {getattr(exc, 'problem', '')})" if mark else "")
-    if problem is None and not isinstance(loaded, dict):
-        problem = "not a mapping of config sections"
-    if problem is not None:
-        raise ConfigError(f"--resume: {saved}: {problem}; it is the run's config, which a resume compares with "
-                          "yours: restore it, or train into another --out")
+        loaded = read_yaml(saved)
+    except ConfigError as exc:
+        raise ConfigError(f"--resume: {exc}; {hint}") from None
+    if not isinstance(loaded, dict):
+        raise ConfigError(f"--resume: {saved}: not a mapping of config sections; {hint}")
     old = _flat(loaded)
     now = _flat(yaml.safe_load(yaml.safe_dump(new)))  # the same YAML types on both sides
     return {k: (old.get(k), now.get(k)) for k in sorted(set(old) | set(now))

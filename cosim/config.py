@@ -7,9 +7,10 @@ file's `base:` chain and the overrides (`{"reward.phi": 0.785}` or `["reward.phi
 scalars) are merged into one raw dict that one `Config.model_validate` checks, so a value is judged the same
 wherever it came from. Unknown keys are errors; missing keys keep the defaults. Relative paths in `net` are
 resolved against the YAML file's folder (in an override or a dict: against the working directory). A file
-must be UTF-8 YAML with no key given twice in a mapping; a file or override that is not is one line naming it
-and the position. Each field declares its default, bounds and unit (`[unit]` ending its description) in one
-place, which `Config.model_json_schema()` shows. Cross-field rules: a decision is a whole number of SUMO steps
+must be UTF-8 YAML with no key given twice in a mapping (`read_yaml`, for every YAML file a user may have
+edited); a file or override that is not is one line naming it and the position. Each field declares its
+default, bounds and unit (`[unit]` ending its description) in one place, which `Config.model_json_schema()`
+shows. Cross-field rules: a decision is a whole number of SUMO steps
 and the horizon a whole number of decisions; one agent's observation holds at most `MAX_OBSERVATION_VALUES`.
 Every section, `train:` and `evaluate:` included, is typed here; the module does not import torch, so rollout
 workers and the CLI read it cheaply.
@@ -609,16 +610,7 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     keys are merged over it, so experiments state only what differs."""
     if not path.is_file():
         raise ConfigError(f"config file {path}: not found")
-    raw = path.read_bytes()
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = raw[: exc.start].count(b"\n") + 1
-        raise ConfigError(f"config file {path}: not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line})") from None
-    try:
-        loaded = yaml.load(text, Loader=_ConfigLoader)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {path}: not valid YAML: {_yaml_problem(exc)}") from None
+    loaded = read_yaml(path)
     if loaded is not None and not isinstance(loaded, dict):
         raise ConfigError(f"config file {path}: expected a mapping of sections at top level")
     data = loaded or {}
@@ -667,6 +659,21 @@ def _parse_overrides(overrides: Mapping[str, Any] | Sequence[str] | None) -> dic
             raise ConfigError(f"override {key.strip()}: {raw!r} is not a YAML value: "
                               f"{_yaml_problem(exc, lines=False)}") from None
     return parsed
+
+
+def read_yaml(path: Path) -> Any:
+    """A YAML file's content (None for an empty one), read as config files are: UTF-8, no key given twice in a
+    mapping; otherwise `ConfigError` naming the file and the position, on one line."""
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[: exc.start].count(b"\n") + 1
+        raise ConfigError(f"config file {path}: not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line})") from None
+    try:
+        return yaml.load(text, Loader=_ConfigLoader)
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {path}: not valid YAML: {_yaml_problem(exc)}") from None
 
 
 class _ConfigLoader(yaml.SafeLoader):

@@ -242,8 +242,9 @@ def _duplicate_episode(run: Path) -> None:
 
 
 @pytest.mark.parametrize("damage,expected", [
-    (lambda run: (run / "config.yaml").write_text("sim: [1, 2\n"), "run/config.yaml: not YAML (line"),
-    (lambda run: (run / "config.yaml").write_bytes(b"sim:\n  seed: \xff\n"), "run/config.yaml: not YAML"),
+    (lambda run: (run / "config.yaml").write_text("sim: [1, 2\n"), "run/config.yaml: not valid YAML: line 2"),
+    (lambda run: (run / "config.yaml").write_bytes(b"sim:\n  seed: \xff\n"),
+     "run/config.yaml: not UTF-8 text (byte 0xff on line 2)"),
     (lambda run: (run / "config.yaml").write_text("- sim\n- train\n"),
      "run/config.yaml: not a mapping of config sections"),
     (lambda run: _written_twice_run(run), "run/episodes.csv: line 6 repeats the header"),
