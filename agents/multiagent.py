@@ -21,6 +21,7 @@ Contract (N AVs):
 from __future__ import annotations
 
 import copy
+import logging
 from dataclasses import dataclass
 from typing import Any
 
@@ -28,7 +29,10 @@ import torch
 
 from agents.config import TrainConfig, schedule, use_bf16
 from agents.losses import OPTIMIZERS, ValueNorm, actor_critic_loss, gae, normalize
-from agents.model import ActorCritic
+from agents.model import BF16_GRADIENT_TOL, ActorCritic, bf16_gradient_error
+from cosim.errors import ConfigError
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -57,6 +61,20 @@ class Batch:
             t.zero_()
 
 
+def _bf16_sound(obs_shape: tuple[int, ...], n_actions: int, tc: TrainConfig, device: torch.device) -> bool:
+    """Whether this machine's bfloat16 kernels give right gradients for this network (`bf16_gradient_error`):
+    if not, `auto` falls back to float32 with a warning and an explicit `bfloat16` is refused."""
+    name, err = bf16_gradient_error(obs_shape, n_actions, tc.feature_dim, tc.head_hidden, device)
+    if err <= BF16_GRADIENT_TOL:
+        return True
+    problem = (f"bfloat16 gradients on this {device.type.upper()} are wrong for observation shape {tuple(obs_shape)}: "
+               f"{name} is off float32's by {err:.3g} (relative; sound kernels stay within 0.003)")
+    if tc.precision == "bfloat16":
+        raise ConfigError(f"train.precision: bfloat16: {problem}; use float32, or auto, which falls back to it")
+    log.warning("%s; training in float32 instead (train.precision: auto)", problem)
+    return False
+
+
 class MultiAgentPolicy:
     """Networks, acting copies, optimizers and value normalisers of N AVs (see the module doc)."""
 
@@ -67,9 +85,9 @@ class MultiAgentPolicy:
         self.disseminate_every = tc.disseminate_every
         self.device = torch.device(device)
         n_nets = 1 if self.shared else n_agents
-        bf16 = use_bf16(tc.precision, tc.device)
+        self.bf16 = use_bf16(tc.precision, tc.device) and _bf16_sound(obs_shape, n_actions, tc, self.device)
         self.nets = [ActorCritic(obs_shape, n_actions, feature_dim=tc.feature_dim, head_hidden=tc.head_hidden,
-                                 bf16=bf16).to(self.device) for _ in range(n_nets)]
+                                 bf16=self.bf16).to(self.device) for _ in range(n_nets)]
         self.acting = [] if self.shared else [copy.deepcopy(net).requires_grad_(False) for net in self.nets]
         self.optimizers = [OPTIMIZERS[tc.optimizer](net.parameters(), tc) for net in self.nets]
         self.value_norms = [ValueNorm().to(self.device) if tc.value_norm else None for _ in self.nets]

@@ -51,7 +51,7 @@ from agents.checkpoint import (
     set_rng_state,
 )
 from agents.collect import Collected, collect
-from agents.config import TrainConfig, check_device, train_config, use_bf16
+from agents.config import TrainConfig, check_device, train_config
 from agents.logs import RunLogger, cut_logs, log_gaps
 from agents.multiagent import Batch, MultiAgentPolicy
 from agents.rollout import Backend
@@ -264,7 +264,7 @@ class _Run:
             self.policy = MultiAgentPolicy(len(spec.agents), spec.obs_shape, spec.n_actions, tc, tc.device)
             # Which one `auto` chose decides whether the run is reproducible bit for bit (README).
             log.info("forward passes in %s (train.precision: %s)",
-                     "bfloat16" if use_bf16(tc.precision, tc.device) else "float32", tc.precision)
+                     "bfloat16" if self.policy.bf16 else "float32", tc.precision)
             if payload is not None:
                 check_spec(payload, self.spec, self.ckpt_path)
                 self.policy.load_state_dict(payload["policy"])

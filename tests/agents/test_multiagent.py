@@ -8,9 +8,14 @@ import pytest
 import torch
 
 from agents.config import TrainConfig
+from agents.model import BF16_GRADIENT_TOL, bf16_gradient_error
 from agents.multiagent import Batch, MultiAgentPolicy
+from cosim.errors import ConfigError
 
 OBS = (2, 4, 8, 16)
+# The bfloat16 tests' observations: with 2 frames, or 3 on a map this small, torch 2.13's oneDNN gives wrong
+# Conv3D weight gradients on CPUs with AVX512-BF16 (`bf16_gradient_error`; the policy refuses bfloat16 there).
+BF16_OBS = (3, 4, 16, 32)
 
 
 def small_tc(**kw: object) -> TrainConfig:
@@ -32,9 +37,9 @@ BF16_TOL = 0.15
 LIVE = ((0, 0), (0, 1), (1, 2), (1, 0))  # (worker, agent) of live samples
 
 
-def random_batch(T: int = 3, W: int = 2, N: int = 3, seed: int = 0) -> Batch:
+def random_batch(T: int = 3, W: int = 2, N: int = 3, seed: int = 0, obs: tuple[int, ...] = OBS) -> Batch:
     g = torch.Generator().manual_seed(seed)
-    b = Batch.allocate(T, W, N, OBS, torch.float32)
+    b = Batch.allocate(T, W, N, obs, torch.float32)
     b.obs[:] = torch.rand(b.obs.shape, generator=g)
     b.valid[:] = True
     b.actions[:] = torch.randint(0, 5, b.actions.shape, generator=g)
@@ -59,7 +64,7 @@ def same(net: torch.nn.Module, state: dict[str, torch.Tensor]) -> bool:
 
 def trained(tc: TrainConfig, batch: Batch, n_agents: int = 3) -> tuple[dict, list[dict[str, torch.Tensor]]]:
     torch.manual_seed(0)
-    policy = MultiAgentPolicy(n_agents, OBS, 5, tc)
+    policy = MultiAgentPolicy(n_agents, tuple(batch.obs.shape[3:]), 5, tc)
     stats = policy.update(batch, tc, update=0, progress=0.0)
     return stats, snapshot(policy.nets)
 
@@ -67,7 +72,7 @@ def trained(tc: TrainConfig, batch: Batch, n_agents: int = 3) -> tuple[dict, lis
 def change(tc: TrainConfig, batch: Batch) -> tuple[dict, torch.Tensor]:
     """The statistics of `trained` and how far it moved the shared network's parameters (flat)."""
     torch.manual_seed(0)
-    (start,) = snapshot(MultiAgentPolicy(3, OBS, 5, tc).nets)  # `trained`'s network before its update
+    (start,) = snapshot(MultiAgentPolicy(3, tuple(batch.obs.shape[3:]), 5, tc).nets)  # `trained`'s, before it learns
     stats, (end,) = trained(tc, batch)
     return stats, torch.cat([(end[k] - start[k]).flatten() for k in start])
 
@@ -76,8 +81,8 @@ def relative(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a - b).norm() / b.norm())
 
 
-def crashed_batch() -> Batch:
-    b = random_batch()
+def crashed_batch(obs: tuple[int, ...] = OBS) -> Batch:
+    b = random_batch(obs=obs)
     b.valid[2:, 1, 2] = False  # agent 2 of worker 1 crashed at step 1
     b.terminated[1, 1, 2] = True
     return b
@@ -104,7 +109,7 @@ def test_shared_network_learns_from_every_live_agents_sample(algo: str) -> None:
 @pytest.mark.parametrize("algo", ["a2c", "ppo"])
 def test_in_bfloat16_every_live_agents_sample_moves_the_update(algo: str) -> None:
     tc = small_tc(algo=algo, ppo_minibatches=1, ppo_epochs=1, **BF16)
-    b = crashed_batch()
+    b = crashed_batch(BF16_OBS)
     stats, base = change(tc, b)
     assert stats["batch"] == 3 * 2 * 3 - 1
     for w, i in LIVE:
@@ -112,9 +117,9 @@ def test_in_bfloat16_every_live_agents_sample_moves_the_update(algo: str) -> Non
         assert relative(moved, base) > 3 * BF16_TOL, (w, i)  # far beyond bfloat16's rounding
 
 
-def garbage_batches() -> tuple[Batch, Batch]:
+def garbage_batches(obs: tuple[int, ...] = OBS) -> tuple[Batch, Batch]:
     """A batch with invalid samples (a crashed agent, a lost episode), and the same with garbage in them."""
-    a = random_batch()
+    a = random_batch(obs=obs)
     a.valid[1:, 0, 0] = False  # agent 0 of worker 0 gone after step 0 (it crashed there)
     a.terminated[0, 0, 0] = True
     a.valid[:, 1] = False  # worker 1's episode was lost
@@ -137,7 +142,7 @@ def test_masked_samples_do_not_enter_the_loss() -> None:
 
 def test_masked_samples_do_not_enter_a_bfloat16_update() -> None:
     tc = small_tc(**BF16)
-    (sa, clean), (sb, dirty) = (change(tc, b) for b in garbage_batches())
+    (sa, clean), (sb, dirty) = (change(tc, b) for b in garbage_batches(BF16_OBS))
     assert sa["batch"] == sb["batch"] == 1 + 3 + 3
     assert sb["loss"] == pytest.approx(sa["loss"], rel=1e-3) and relative(dirty, clean) < BF16_TOL
 
@@ -145,13 +150,13 @@ def test_masked_samples_do_not_enter_a_bfloat16_update() -> None:
 @pytest.mark.parametrize("algo", ["a2c", "ppo"])
 def test_a_bfloat16_update_is_close_to_the_float32_one_and_keeps_float32_weights(algo: str) -> None:
     tc = small_tc(algo=algo, ppo_minibatches=1, ppo_epochs=1, **BF16)
-    b = crashed_batch()
+    b = crashed_batch(BF16_OBS)
     s16, d16 = change(tc, b)
     s32, d32 = change(tc.model_copy(update={"precision": "float32"}), b)
     # The loss is of the initial network, whose outputs are tiny: bfloat16 leaves it within 1e-5 (measured).
     assert s16["loss"] == pytest.approx(s32["loss"], rel=1e-3) and relative(d16, d32) < BF16_TOL
     torch.manual_seed(0)
-    policy = MultiAgentPolicy(3, OBS, 5, tc)
+    policy = MultiAgentPolicy(3, BF16_OBS, 5, tc)
     policy.update(b, tc, update=0, progress=0.0)
     states = [v for s in policy.optimizers[0].state.values() for v in s.values() if v.dim() > 0]
     assert policy.nets[0].bf16 and states
@@ -222,3 +227,48 @@ def test_schedules_set_the_learning_rate_and_entropy_weight() -> None:
     stats = policy.update(random_batch(N=1), tc, update=0, progress=0.5)
     assert stats["lr"] == pytest.approx(0.0055) and stats["entropy_coef"] == pytest.approx(0.01)
     assert policy.optimizers[0].param_groups[0]["lr"] == pytest.approx(0.0055)
+
+
+class _DropGradient(torch.autograd.Function):
+    """Identity forward, zero gradient backward: a Conv3D kernel that gets bfloat16 weight gradients wrong."""
+
+    @staticmethod
+    def forward(ctx: object, x: torch.Tensor) -> torch.Tensor:
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx: object, grad: torch.Tensor) -> torch.Tensor:
+        return torch.zeros_like(grad)
+
+
+@pytest.fixture
+def faulty_bf16_conv(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Conv3D layers whose output passes no gradient back under bfloat16 autocast (float32 stays right)."""
+    conv_forward = torch.nn.Conv3d._conv_forward
+
+    def faulty(self: torch.nn.Conv3d, x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor | None) -> torch.Tensor:
+        out = conv_forward(self, x, weight, bias)
+        return _DropGradient.apply(out) if torch.is_autocast_enabled("cpu") else out
+
+    monkeypatch.setattr(torch.nn.Conv3d, "_conv_forward", faulty)
+
+
+def test_bfloat16_gradients_are_checked_against_float32_for_the_networks_shape(faulty_bf16_conv: None,
+                                                                             monkeypatch: pytest.MonkeyPatch,
+                                                                             caplog: pytest.LogCaptureFixture) -> None:
+    # Explicit bfloat16 on kernels that get it wrong: refused, naming the key and the layer.
+    with pytest.raises(ConfigError, match=r"train.precision: bfloat16: .*features\.conv\.\d\.(weight|bias)"):
+        MultiAgentPolicy(3, BF16_OBS, 5, small_tc(**BF16))
+    # auto, on a machine where it would pick bfloat16: float32 instead, with a warning.
+    monkeypatch.setattr("agents.multiagent.use_bf16", lambda precision, device: True)
+    torch.manual_seed(0)
+    policy = MultiAgentPolicy(3, BF16_OBS, 5, small_tc(precision="auto"))
+    assert not policy.bf16 and not policy.nets[0].bf16
+    assert "training in float32 instead" in caplog.text
+    # The check draws from a forked RNG: the network starts as a float32 run's, so a run stays reproducible.
+    torch.manual_seed(0)
+    assert same(MultiAgentPolicy(3, BF16_OBS, 5, small_tc()).nets[0], snapshot(policy.nets)[0])
+    monkeypatch.undo()
+    # Sound kernels (this shape, float32 reference): bfloat16 is kept.
+    assert bf16_gradient_error(BF16_OBS, 5, 32, 16)[1] <= BF16_GRADIENT_TOL
+    assert MultiAgentPolicy(3, BF16_OBS, 5, small_tc(**BF16)).bf16
