@@ -27,7 +27,7 @@ import numbers
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
-from typing import Annotated, Any, Literal, Self, TypeVar, get_args
+from typing import Annotated, Any, ClassVar, Literal, Self, TypeVar, get_args
 
 import yaml
 from pydantic import (
@@ -174,6 +174,65 @@ NonNegativeSpan = _span(0.0)
 SpacingSpan = _span(1.0, " (below the equilibrium gap the stream brakes at once)")
 
 
+ShareSpan = _span(0.0)
+
+
+# Net-relative keys and their absolute twins. Each group lists alternatives, each a tuple of keys that state
+# one quantity: the first alternative is net-relative (resolved per net by cosim.sumo.resolve) and holds the
+# section's default; the others state it in absolute units. One alternative per config: both in one file or
+# one set of overrides is an error; a later layer (a file over its `base:`, an override over the files) that
+# sets one alternative clears the others, so `--set scenario.n_hvs=4` works on a config stating hv_density.
+Twins = tuple[tuple[str, ...], ...]
+SCENARIO_TWINS: tuple[Twins, ...] = (
+    (("merger_time",), ("merger_distance",), ("merger_pos",)),
+    (("merger_speed_factor",), ("merger_speed",)),
+    (("stream_speed_factor",), ("stream_speed",)),
+    (("stream_head_share",), ("stream_head",)),
+    (("av_speed_offset_factor",), ("av_speed_offset",)),
+    (("speed_range_factor",), ("speed_range",)),
+    (("place_share",), ("place_from", "place_to")),
+    (("hv_density",), ("n_hvs",)),
+)
+DRIVER_TWINS: tuple[Twins, ...] = ((("max_speed_factor",), ("max_speed",)),)
+AV_TWINS: tuple[Twins, ...] = ((("max_speed_factor",), ("max_speed",)), (("speed_step_factor",), ("speed_step",)))
+OBSERVATION_TWINS: tuple[Twins, ...] = ((("speed_scale_factor",), ("speed_scale",)),)
+TWINS: dict[str, tuple[Twins, ...]] = {"scenario": SCENARIO_TWINS, "hv": DRIVER_TWINS, "merger": DRIVER_TWINS,
+                                       "av": AV_TWINS, "observation": OBSERVATION_TWINS}
+
+
+def _given(data: Mapping[str, Any], keys: Sequence[str]) -> bool:
+    return any(data.get(k) is not None for k in keys)
+
+
+def _one_of_twins(data: Any, groups: tuple[Twins, ...]) -> Any:
+    """Before a section validates: an error naming both keys where two alternatives are given; where an absolute
+    alternative is given, the relative one's default is dropped (null)."""
+    if not isinstance(data, Mapping):
+        return data
+    data = dict(data)
+    for group in groups:
+        given = [alt for alt in group if _given(data, alt)]
+        if len(given) > 1:
+            a, b = given[0][0], given[1][0]
+            raise _problem(f"set together with {a}, its twin: the two state one quantity (one relative to the net, "
+                           f"one absolute); give one, e.g. set {a} to null", b)
+        if given and given[0] is not group[0]:
+            data.update(dict.fromkeys((k for k in group[0] if k not in data), None))
+    return data
+
+
+def _clear_twins(section: str, into: dict[str, Any], over: Mapping[str, Any]) -> None:
+    """`over` is merged into `into` (one config section, a later layer over an earlier one): the alternatives
+    of each quantity that `over` states are cleared from `into`."""
+    for group in TWINS.get(section, ()):
+        for alt in group:
+            if _given(over, alt):
+                for other in group:
+                    if other is not alt:
+                        for k in other:
+                            into.pop(k, None)
+
+
 def _angles(value: Any, handler: ValidatorFunctionWrapHandler) -> Any:
     # One line for the field instead of pydantic's one per member of the union.
     try:
@@ -205,6 +264,12 @@ class _Section(BaseModel):
     problem would hide the others and lose its key path."""
 
     model_config = ConfigDict(frozen=True, extra="forbid", validate_default=True)
+    twins: ClassVar[tuple[Twins, ...]] = ()  # the section's net-relative keys and their absolute twins (TWINS)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_of_twins(cls, data: Any) -> Any:
+        return _one_of_twins(data, cls.twins)
 
     @classmethod
     def model_validate(cls, obj: Any, **kwargs: Any) -> Self:
@@ -294,30 +359,65 @@ class ScenarioConfig(_Section):
 
     placement: Placement = Field("stream", description="stream | window (see the class docstring)")
     n_avs: Int = Field(4, gt=0, description="autonomous vehicles (the agents)")
-    n_hvs: Int = Field(10, ge=0, description="HVs placed by the window rule (stream: on the lanes beside the stream)")
-    place_from: Number = Field(0.0, description="along the highway from its first edge's start [m]")
-    place_to: Number = Field(640.0, description="upstream placement window end [m]")
+    hv_density: Number | None = Field(
+        16.0, ge=0, description="HVs placed by the window rule (stream: on the lanes beside the stream) per km and "
+        "lane of the placement window, rounded; or n_hvs [veh/km/lane]")
+    n_hvs: Int | None = Field(None, ge=0, description="... as a count (capped, with a warning, to what fits) [-]")
+    place_share: ShareSpan | None = Field(
+        (0.0, 1.0), description="placement window [from, to] as shares of the highway from its start to the "
+        "acceleration lane's end; or place_from / place_to [-]")
+    place_from: Number | None = Field(None, description="... along the highway from its first edge's start [m]")
+    place_to: Number | None = Field(None, description="... upstream placement window end [m]")
     min_gap: Number = Field(
         30.0, gt=0, description="front-to-front spacing between window-placed vehicles in a lane, at least [m]")
     max_gap: Number = Field(60.0, description="... and at most [m]")
-    speed_range: NonNegativeSpan = Field((23.0, 28.0), description="initial speeds of window-placed vehicles [m/s]")
-    merger_pos: NonNegativeSpan = Field((0.0, 40.0), description="start position along the ramp's first edge [m]")
-    merger_speed: NonNegativeSpan = Field((18.0, 22.0), description="initial speed of the merging vehicle [m/s]")
+    speed_range_factor: NonNegativeSpan | None = Field(
+        (0.69, 0.84), description="initial speeds of window-placed vehicles as factors of their lane's speed limit; "
+        "or speed_range [-]")
+    speed_range: NonNegativeSpan | None = Field(None, description="... in m/s [m/s]")
+    merger_time: NonNegativeSpan | None = Field(
+        (4.0, 6.5), description="the merging vehicle starts on the ramp this long (at its initial speed) before it "
+        "reaches the acceleration lane; or merger_distance, or merger_pos [s]")
+    merger_distance: NonNegativeSpan | None = Field(
+        None, description="... this far before the acceleration lane, along the ramp [m]")
+    merger_pos: NonNegativeSpan | None = Field(None, description="... at this position along the ramp's first edge [m]")
+    merger_speed_factor: NonNegativeSpan | None = Field(
+        (0.8, 1.0), description="initial speed of the merging vehicle as a factor of its lane's speed limit; or "
+        "merger_speed [-]")
+    merger_speed: NonNegativeSpan | None = Field(None, description="... in m/s [m/s]")
+    merger_lane: Int | None = Field(
+        None, ge=0, description="the ramp lane the merging vehicle starts in (0 = rightmost); null: the leftmost, "
+        "the one nearest a highway it joins from the right [-]")
     inflow: Number = Field(0.0, ge=0, description="further HVs entering the highway start during the episode [veh/h]")
-    stream_speed: NonNegativeSpan = Field((23.0, 27.0), description="the stream's speed [m/s]")
-    stream_head: Span = Field((0.0, 80.0), description="its first vehicle, past the merge edge's start [m]")
+    stream_speed_factor: NonNegativeSpan | None = Field(
+        (0.69, 0.81), description="the stream's speed as a factor of the speed limit of its lane on the merge edge; "
+        "or stream_speed [-]")
+    stream_speed: NonNegativeSpan | None = Field(None, description="... in m/s [m/s]")
+    stream_head_share: Span | None = Field(
+        (0.0, 0.67), description="its first vehicle, past the merge edge's start, as a share of the acceleration "
+        "lane's length; or stream_head [-]")
+    stream_head: Span | None = Field(None, description="... in metres [m]")
     stream_spacing: SpacingSpan = Field((1.0, 1.2), description="factor on each HV's equilibrium gap [-]")
-    av_speed_offset: Span = Field((-1.0, 3.0), description="AVs' initial speed minus the stream's [m/s]")
+    av_speed_offset_factor: Span | None = Field(
+        (-0.03, 0.09), description="AVs' initial speed minus the stream's, as a factor of the stream lane's speed "
+        "limit; or av_speed_offset [-]")
+    av_speed_offset: Span | None = Field(None, description="... in m/s [m/s]")
     guide_window: Span = Field(
         (0.0, 3.0), description="one AV's arrival at the merge edge minus the merging vehicle's (both at their "
         "initial speeds) [s]")
+
+    twins: ClassVar[tuple[Twins, ...]] = SCENARIO_TWINS
 
     @model_validator(mode="after")
     def _ordered_window(self) -> Self:
         if self.max_gap < self.min_gap:
             raise _problem(f"must be >= min_gap ({self.min_gap}), got {self.max_gap}", "max_gap")
-        if self.place_to <= self.place_from:
+        if (self.place_from is None) != (self.place_to is None):
+            raise _problem("place_from and place_to go together (or use place_share)", "place_to")
+        if self.place_from is not None and self.place_to <= self.place_from:
             raise _problem(f"must be greater than place_from ({self.place_from}), got {self.place_to}", "place_to")
+        if self.place_share is not None and self.place_share[0] >= self.place_share[1]:
+            raise _problem(f"expected [from, to] with from < to, got {list(self.place_share)}", "place_share")
         return self
 
 
@@ -327,7 +427,10 @@ class DriverConfig(_Section):
     accel: Number = Field(2.6, description="[m/s^2]")
     decel: Number = Field(4.5, description="[m/s^2]")
     emergency_decel: Number = Field(9.0, description="[m/s^2]")
-    max_speed: Number = Field(33.0, description="[m/s]")
+    max_speed_factor: Number | None = Field(
+        1.0, gt=0, description="top speed (vType maxSpeed) as a factor of the highway's speed limit at the merge; "
+        "or max_speed [-]")
+    max_speed: Number | None = Field(None, gt=0, description="... in m/s [m/s]")
     length: Number = Field(5.0, description="[m]")
     width: Number = Field(1.8, description="[m]")
     min_gap: Number = Field(2.5, description="[m]")
@@ -345,17 +448,28 @@ class DriverConfig(_Section):
         description="LC2013 / SL2015 parameters, e.g. {lcCooperative: 0.2}; the default never yields to the "
         "merging vehicle")
 
+    twins: ClassVar[tuple[Twins, ...]] = DRIVER_TWINS
+
 
 class AVConfig(_Section):
     accel: Number = Field(3.0, gt=0, description="applied by the env: SUMO's own limits are off for AVs [m/s^2]")
     decel: Number = Field(5.0, gt=0, description="[m/s^2]")
-    max_speed: Number = Field(33.0, gt=0, description="[m/s]")
-    speed_step: Number = Field(2.5, gt=0, description="target-speed change of accelerate / decelerate [m/s]")
+    max_speed_factor: Number | None = Field(
+        1.0, gt=0, description="the highest target speed as a factor of the highway's speed limit at the merge (also "
+        "the speed reward's scale); or max_speed [-]")
+    max_speed: Number | None = Field(None, gt=0, description="... in m/s [m/s]")
+    speed_step_factor: Number | None = Field(
+        0.075, gt=0, description="target-speed change of accelerate / decelerate as a factor of that limit; or "
+        "speed_step [-]")
+    speed_step: Number | None = Field(None, gt=0, description="... in m/s [m/s]")
     length: Number = Field(5.0, description="[m]")
     width: Number = Field(1.8, description="[m]")
 
+    twins: ClassVar[tuple[Twins, ...]] = AV_TWINS
+
 
 class ObservationConfig(_Section):
+    twins: ClassVar[tuple[Twins, ...]] = OBSERVATION_TWINS
     preset: Preset = Field("default", description="one of OBSERVATION_PRESETS; the size keys below override it")
     channels: tuple[Channel, ...] = Field(CHANNELS, description="distinct channel names, in this order")
     # The sizes are null only until validation: a null takes the preset's value.
@@ -366,7 +480,10 @@ class ObservationConfig(_Section):
     width_m: Number | None = Field(None, gt=0, description="lateral extent of the window [m]")
     ego_at: Number = Field(
         0.5, ge=0.0, le=1.0, description="ego's longitudinal place in the window, 0 = rear edge, 1 = front edge [-]")
-    speed_scale: Number = Field(15.0, gt=0, description="relative speed that moves a pixel by 1 [m/s]")
+    speed_scale_factor: Number | None = Field(
+        0.45, gt=0, description="relative speed that moves a pixel value from 0.5 to 1, as a factor of the highway's "
+        "speed limit at the merge; or speed_scale [-]")
+    speed_scale: Number | None = Field(None, gt=0, description="... in m/s [m/s]")
     dtype: Literal["float32", "float16", "uint8"] = Field("float32", description="element type of the maps")
 
     @model_validator(mode="before")
@@ -527,7 +644,7 @@ class Config(_Section):
     hv: DriverConfig = Field(default_factory=DriverConfig)
     # A merger section given in a file starts from DriverConfig's defaults, not from these.
     merger: DriverConfig = Field(default_factory=lambda: DriverConfig(
-        max_speed=30.0, tau_range=(1.0, 1.0), sigma_range=(0.0, 0.0), speed_factor=(1.0, 1.0), lc_params={}))
+        max_speed_factor=0.9, tau_range=(1.0, 1.0), sigma_range=(0.0, 0.0), speed_factor=(1.0, 1.0), lc_params={}))
     av: AVConfig = Field(default_factory=AVConfig)
     observation: ObservationConfig = Field(default_factory=ObservationConfig)
     reward: RewardConfig = Field(default_factory=RewardConfig)
@@ -590,7 +707,12 @@ def load_config(
     else:
         path = Path(config)
         data, source = _read_yaml(path), str(path)
-    for key, value in _parse_overrides(overrides).items():
+    parsed = _parse_overrides(overrides)
+    for section in {key.partition(".")[0] for key in parsed}:  # overrides replace the files' twins (TWINS)
+        if isinstance(data.get(section), dict):
+            _clear_twins(section, data[section], {k.partition(".")[2]: v for k, v in parsed.items()
+                                                  if k.partition(".")[0] == section})
+    for key, value in parsed.items():
         _set_dotted(data, key, value)
     data["source"] = source
     return Config.model_validate(data, context={"source": source})
@@ -630,10 +752,12 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     return merged
 
 
-def _merge(into: dict[str, Any], over: Mapping[str, Any]) -> None:
+def _merge(into: dict[str, Any], over: Mapping[str, Any], section: str = "") -> None:
     for key, value in over.items():
         if isinstance(value, Mapping) and isinstance(into.get(key), dict):
-            _merge(into[key], value)
+            if not section:  # a later layer's twin replaces the earlier layer's (TWINS)
+                _clear_twins(key, into[key], value)
+            _merge(into[key], value, key)
         else:
             into[key] = value
 

@@ -1,11 +1,14 @@
 """The on-ramp merge as a PettingZoo ParallelEnv over a real SUMO (libsumo).
 
-Contract: agents `av_0 .. av_{N-1}` drive with the paper's 5 meta-actions (`cosim.environment.control.Action`) and
-observe a stacked VelocityMap (frames, channels, height, width); rewards are the SVO rewards of
-`cosim.environment.reward`, with every weighted term in `infos[agent]["reward_terms"]`. An agent terminates when its
-AV crashes or leaves the net. The episode is cut (every other live agent truncated) at the horizon, when
-the merging vehicle crashes (or, with `sim.end_on_stuck`, gets stuck at the end of the acceleration lane:
-by default it waits there to the horizon), and, with
+Contract: the config is resolved on the env's net first (`cosim.sumo.resolve`: net-relative speeds, lengths
+and counts in absolute units, values the net cannot take capped with a warning naming the key); `env.cfg` is
+that resolved config. Agents `av_0 .. av_{N-1}` drive with the paper's 5 meta-actions
+(`cosim.environment.control.Action`) and observe a stacked VelocityMap (frames, channels, height, width);
+rewards are the SVO rewards of `cosim.environment.reward`, with every weighted term in
+`infos[agent]["reward_terms"]`. An agent terminates when its AV crashes or leaves the net. The episode is cut
+(every other live agent truncated) at the horizon, when the merging vehicle crashes (or, with
+`sim.end_on_stuck`, gets stuck at the end of the acceleration lane: by default it waits there to the
+horizon), and, with
 `sim.on_collision: end` (the paper's rule), at the SUMO step of the first collision that involves an AV or
 the merging vehicle: the other AVs' own driving did not end there, so a learner bootstraps, and an
 egoistic AV gains nothing from keeping the episode alive. With `on_collision: remove` the colliders are
@@ -54,6 +57,7 @@ from cosim.environment.velocity_map import VelocityMapper, rasterize_road
 from cosim.errors import CosimError, SimulationError
 from cosim.sumo.net import load_net
 from cosim.sumo.outputs import SumoOutputs, detector_site, episode_folder, episode_output_args, read_episode_outputs
+from cosim.sumo.resolve import resolve
 from cosim.sumo.scenario import av_id, kind_of, plan_episode, write_episode
 from cosim.sumo.session import SumoSession
 from cosim.sumo.snapshot import KIND_AV, KIND_MERGER, Snapshot
@@ -92,9 +96,14 @@ class MergeEnv(ParallelEnv):
     def __init__(self, config: Config, render_mode: str | None = None) -> None:
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
-        self.cfg = config
         self.render_mode = render_mode
         self.net = load_net(config.net.file, config.net.description)
+        # Everything below reads the config resolved on this net: net-relative keys in absolute units.
+        resolved = resolve(config, self.net)
+        self.cfg = config = resolved.config
+        self.resolution_notes = resolved.notes
+        for note in resolved.notes:
+            log.warning("%s", note)
         self.road, self.chainage = self.net.road, self.net.chainage
         self.zone = MergeZone.from_net(self.net)
         self.tracker = self.new_tracker()  # this episode's metrics, renewed at reset

@@ -3,13 +3,15 @@
 Contract: a policy is called as `policy(env) -> {agent: action}` for the env's live agents; the rule-based
 ones read the env's public snapshot and net geometry (they are baselines, not learners):
 - `idle` keeps every AV's lane and target speed; `random` draws actions uniformly.
-- `scripted`, the egoistic reference: cruise at `cruise_speed`, keep a `headway` [s] to the leader in the
-  AV's lane (plus the distance needed to match a slower leader's speed at `brake` [m/s^2]), never change lane.
+- `scripted`, the egoistic reference: cruise at `cruise_factor` times the highway's speed limit at the merge
+  (`Net.speed_limit`), keep a `headway` [s] to the leader in the AV's lane (plus the distance needed to match a
+  slower leader's speed at `brake` [m/s^2]), never change lane.
 - `courteous`: scripted, except for the AV best placed to let the merging vehicle in, the nearest AV behind
-  it in the lane it must enter (up to `reach` m behind) while it has not merged: that AV moves one lane
-  left where the left lane has room, else slows down below the merging vehicle's speed so that a gap opens
-  in front of it.
+  it in the lane it must enter (up to `reach` seconds at cruise speed behind) while it has not merged: that
+  AV moves one lane left where the left lane has room, else slows down below the merging vehicle's speed (not
+  below `min_speed_factor` times the limit) so that a gap opens in front of it.
 Positions are chainages along the highway (`cosim.sumo.net.Chainage`), so leaders on the next edge count.
+Speeds follow the net's limit, so a baseline means the same on a 60 km/h and a 130 km/h road.
 """
 
 from __future__ import annotations
@@ -75,10 +77,12 @@ def _follow(v: float, gap: float, v_lead: float, cruise: float, headway: float, 
     return int(Action.IDLE)
 
 
-def scripted_policy(seed: int = 0, cruise_speed: float = 27.0, headway: float = 1.0, brake: float = 2.0) -> Policy:
+# 0.81 x 33.33 m/s = 27 m/s on the dilemma net, the stream's upper speed.
+def scripted_policy(seed: int = 0, cruise_factor: float = 0.81, headway: float = 1.0, brake: float = 2.0) -> Policy:
     def act(env: MergeEnv) -> dict[str, int]:
         road = _Road(env, env.snapshot)
-        return {a: _scripted(road, road.snap.row_of(a), cruise_speed, headway, brake) for a in env.agents}
+        cruise = cruise_factor * env.net.speed_limit
+        return {a: _scripted(road, road.snap.row_of(a), cruise, headway, brake) for a in env.agents}
 
     return act
 
@@ -90,11 +94,14 @@ def _scripted(road: _Road, r: int, cruise: float, headway: float, brake: float) 
     return _follow(float(road.snap.speed[r]), gap, v_lead, cruise, headway, brake)
 
 
-def courteous_policy(seed: int = 0, cruise_speed: float = 27.0, headway: float = 1.0, brake: float = 2.0,
-                     reach: float = 120.0, min_speed: float = 8.0) -> Policy:
+# reach 4.45 s at 27 m/s = 120 m and min_speed 0.24 x 33.33 = 8 m/s on the dilemma net.
+def courteous_policy(seed: int = 0, cruise_factor: float = 0.81, headway: float = 1.0, brake: float = 2.0,
+                     reach: float = 4.45, min_speed_factor: float = 0.24) -> Policy:
     def act(env: MergeEnv) -> dict[str, int]:
         road = _Road(env, env.snapshot)
         snap = road.snap
+        cruise_speed = cruise_factor * env.net.speed_limit
+        reach_m, min_speed = reach * cruise_speed, min_speed_factor * env.net.speed_limit
         actions = {a: _scripted(road, snap.row_of(a), cruise_speed, headway, brake) for a in env.agents}
         m = np.flatnonzero(snap.kind == KIND_MERGER)
         if m.size == 0 or road.rank[m[0]] >= 0 or not np.isfinite(road.s[m[0]]):
@@ -103,7 +110,7 @@ def courteous_policy(seed: int = 0, cruise_speed: float = 27.0, headway: float =
         target = env.zone.target_rank
         rows = {a: snap.row_of(a) for a in env.agents}
         behind = {a: road.s[m] - road.s[r] for a, r in rows.items()
-                  if r >= 0 and road.rank[r] == target and -5.0 <= road.s[m] - road.s[r] <= reach}
+                  if r >= 0 and road.rank[r] == target and -5.0 <= road.s[m] - road.s[r] <= reach_m}
         if not behind:
             return actions
         guide = min(behind, key=behind.__getitem__)

@@ -72,9 +72,70 @@ class Net:
         return edge, min(s - starts[i], self.road.edge_length(edge))  # in a junction: the end of the edge before
 
     def through_lanes(self, edge: str) -> tuple[int, ...]:
-        """Lane indices of `edge` that carry through traffic (all lanes but the acceleration lanes)."""
-        skip = set(self.desc.accel_lanes) if edge == self.desc.merge_edge else set()
-        return tuple(i for i in range(self.road.num_lanes(edge)) if i not in skip)
+        """Lane indices of highway edge `edge` that carry through traffic: all lanes but the acceleration lanes
+        and lanes that end there (a lane drop: no connection onward to the next highway edge)."""
+        return self._through[edge]
+
+    @cached_property
+    def _through(self) -> dict[str, tuple[int, ...]]:
+        hw, road = self.desc.highway, self.road
+        out = {}
+        for k, edge in enumerate(hw):
+            skip = set(self.desc.accel_lanes) if edge == self.desc.merge_edge else set()
+            onward = {i for i, _ in road.connections(edge, hw[k + 1])} if k + 1 < len(hw) else None
+            out[edge] = tuple(i for i in range(road.num_lanes(edge))
+                              if i not in skip and (onward is None or i in onward))
+        return out
+
+    @cached_property
+    def speed_limit(self) -> float:
+        """[m/s] the highway's speed limit where it matters: that of the lane the merging vehicle must enter, on
+        the merge edge (net-relative speeds are factors of it, cosim.sumo.resolve)."""
+        edge = self.desc.merge_edge
+        return self.road.lane(edge, self.through_lanes(edge)[self.target_rank()]).speed
+
+    @cached_property
+    def ramp_speed_limit(self) -> float:
+        """[m/s] the lowest speed limit along the ramp (the merging vehicle's speeds are factors of it)."""
+        return min(lane.speed for e in self.desc.ramp for lane in self.road.edge(e).lanes)
+
+    @cached_property
+    def accel_length(self) -> float:
+        """[m] length of the acceleration lane (the shortest, where there are several)."""
+        return min(self.road.lane(self.desc.merge_edge, i).length for i in self.desc.accel_lanes)
+
+    @cached_property
+    def ramp_offsets(self) -> dict[str, float]:
+        """Chainage [m] of each ramp edge's start on the axis of `chainage` (negative far up a long ramp)."""
+        index = self.road.index_of
+        return {e: float(self.chainage.offsets[index[e]]) for e in self.desc.ramp}
+
+    def ramp_position(self, before: float) -> tuple[int, float, float]:
+        """Where a vehicle `before` [m] ahead of the acceleration lane's start is on the ramp: (index into
+        desc.ramp, position on that edge [m], the distance actually left [m]), capped at the ramp's start; a
+        point inside a junction between two ramp edges is taken at the end of the edge before it."""
+        s = self.chainage.merge_start - before
+        starts = list(self.ramp_offsets.values())
+        if s <= starts[0]:
+            return 0, 0.0, self.chainage.merge_start - starts[0]
+        i = bisect.bisect_right(starts, s) - 1
+        edge = self.desc.ramp[i]
+        pos = min(s - starts[i], self.road.edge_length(edge))
+        return i, pos, self.chainage.merge_start - starts[i] - pos
+
+    def lane_breaks(self, rank: int, until: str | None = None) -> list[str]:
+        """Where through lane `rank` of the highway (up to edge `until`) does not run on into the same rank of the
+        next edge: one line per break, naming the edges and lanes (a lane drops, or the lanes shift)."""
+        hw, road = self.desc.highway, self.road
+        hw = hw[: hw.index(until) + 1] if until is not None else hw
+        breaks = []
+        for a, b in zip(hw, hw[1:], strict=False):
+            la, lb = self.through_lanes(a), self.through_lanes(b)
+            if rank >= len(la) or rank >= len(lb):
+                continue
+            if (la[rank], lb[rank]) not in road.connections(a, b):
+                breaks.append(f"lane {la[rank]} of edge {a!r} does not lead to lane {lb[rank]} of {b!r}")
+        return breaks
 
     def target_rank(self) -> int:
         """Rank among the merge edge's through lanes (0 = rightmost) of the lane the merging vehicle must enter:

@@ -18,7 +18,8 @@ YAML format (as written by `sumo_net.build`):
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +31,8 @@ from cosim.sumo.roadnet import RoadNet
 log = logging.getLogger(__name__)
 
 KEYS = ("highway", "ramp", "merge_edge", "accel_lanes")
-EXAMPLE_YAML = "highway: [hw_in, hw_merge, hw_out]\nramp: [ramp]\nmerge_edge: hw_merge\naccel_lanes: [0]"
+# One line (YAML flow style), so that every error about a description stays one line.
+EXAMPLE_YAML = "{highway: [hw_in, hw_merge, hw_out], ramp: [ramp], merge_edge: hw_merge, accel_lanes: [0]}"
 
 
 @dataclass(frozen=True)
@@ -40,6 +42,8 @@ class NetDescription:
     merge_edge: str  # the highway edge the ramp joins
     accel_lanes: tuple[int, ...]  # lane indices of merge_edge that are not through lanes
     source: str  # the description file's path, or "inferred"
+    # Where each role came from: the file, or the topology that the inference read (role -> one line).
+    reasons: Mapping[str, str] = field(default_factory=dict, compare=False)
 
 
 def load_net_description(roadnet: RoadNet, description_file: str | Path | None = None) -> NetDescription:
@@ -65,7 +69,7 @@ def _from_yaml(roadnet: RoadNet, path: Path) -> NetDescription:
     except (OSError, yaml.YAMLError) as exc:
         raise NetError(f"{where}: not readable YAML ({exc})") from None
     if not isinstance(data, dict):
-        raise NetError(f"{where}: expected a mapping with keys {list(KEYS)}, e.g.\n{EXAMPLE_YAML}")
+        raise NetError(f"{where}: expected a mapping with keys {list(KEYS)}, e.g. {EXAMPLE_YAML}")
     for key in data:
         if key not in KEYS:
             raise NetError(f"{where}: unknown key {key!r}; expected {list(KEYS)}")
@@ -80,7 +84,8 @@ def _from_yaml(roadnet: RoadNet, path: Path) -> NetDescription:
     lanes = data["accel_lanes"]
     if not isinstance(lanes, list) or any(isinstance(i, bool) or not isinstance(i, int) for i in lanes):
         raise NetError(f"{where}: key accel_lanes: expected a list of lane indices, got {lanes!r}")
-    desc = NetDescription(tuple(highway), tuple(ramp), merge_edge, tuple(sorted(set(lanes))), str(path))
+    desc = NetDescription(tuple(highway), tuple(ramp), merge_edge, tuple(sorted(set(lanes))), str(path),
+                          dict.fromkeys(KEYS, f"from {path}"))
     validate(roadnet, desc)
     return desc
 
@@ -122,42 +127,58 @@ def validate(roadnet: RoadNet, desc: NetDescription) -> None:
 
 
 def infer_net_description(roadnet: RoadNet) -> NetDescription:
-    """Find the on-ramp merge from the lane topology alone; raise `NetError` with a YAML example if ambiguous.
+    """Find the on-ramp merge from the lane topology alone; raise `NetError` (one line, with a YAML example) when
+    there is none or several.
 
-    The ramp is a 1-lane edge that joins, through a junction, an edge with more lanes (the merge edge) which
-    also receives a highway edge: one with several lanes, or (for a 1-lane highway) the edge that does not
-    feed the dropped lane. Acceleration lanes are the merge edge's lanes that end there (no connection on
-    while other lanes have one) plus lanes fed only by the ramp.
+    The merge edge has two predecessors or more; the ramp is the one whose lanes all lead into lanes of the merge
+    edge that end there (no connection onward while its other lanes have one: the acceleration lanes), while
+    another predecessor, the highway, feeds lanes that go on; or, where no lane ends, a narrower predecessor
+    whose lanes only it feeds. Ramps of any number of lanes; the highway is followed up- and downstream along
+    the most connected lanes, the ramp upstream over edges no wider than its last one.
     """
     found = []
     for m in roadnet.edge_ids:
-        ends = _dropped_lanes(roadnet, m)
         preds = roadnet.predecessors(m)
+        if len(preds) < 2 or roadnet.num_lanes(m) < 2:
+            continue
+        ends = _dropped_lanes(roadnet, m)
         for r in preds:
             others = [h for h in preds if h != r]
-            if roadnet.num_lanes(r) != 1 or roadnet.num_lanes(m) <= 1 or not others:
-                continue
             ramp_targets = {j for _, j in roadnet.connections(r, m)}
-            if any(roadnet.num_lanes(h) > 1 for h in others) or (ends and ramp_targets <= ends):
-                found.append((m, r, others))
+            fed_by_others = {j for h in others for _, j in roadnet.connections(h, m)}
+            if not ramp_targets or not fed_by_others - ends:
+                continue
+            if ends and ramp_targets <= ends:
+                accel = sorted(ramp_targets)
+                why = (f"every lane of {r!r} leads into a lane of {m!r} that ends there (lane(s) {accel}), while "
+                       f"{', '.join(map(repr, others))} feed(s) lanes that go on")
+            elif (not ramp_targets & fed_by_others
+                  and roadnet.num_lanes(r) < max(roadnet.num_lanes(h) for h in others)):
+                accel = sorted(ramp_targets)
+                why = f"{r!r} is narrower than {', '.join(map(repr, others))} and alone feeds lane(s) {accel} of {m!r}"
+            else:
+                continue
+            found.append((m, r, others, tuple(accel), why))
     if len(found) != 1:
-        what = "none" if not found else ", ".join(f"ramp {r!r} -> {m!r}" for m, r, _ in found)
+        what = "none" if not found else ", ".join(f"ramp {r!r} -> {m!r}" for m, r, *_ in found)
         raise NetError(
-            f"net {roadnet.net_file}: cannot infer the net description: looked for a 1-lane ramp edge "
-            f"joining an edge with more lanes that also receives the highway, found {what}. "
-            f"Write a description YAML beside the net ({_stem_yaml(roadnet)}) or set net.description, "
-            f"with keys {', '.join(KEYS)}, e.g.\n{EXAMPLE_YAML}"
-        )
-    m, r, others = found[0]
-    fed_by_highway = {j for h in others for _, j in roadnet.connections(h, m)}
-    ramp_targets = {j for _, j in roadnet.connections(r, m)}
-    accel = sorted(_dropped_lanes(roadnet, m) | (ramp_targets - fed_by_highway))
+            f"net {roadnet.net_file}: cannot infer the on-ramp merge: looked for an edge joining the highway whose "
+            f"lanes all lead into lanes that end (an acceleration lane), found {what}. Write a description YAML "
+            f"beside the net ({_stem_yaml(roadnet)}) or set net.description, with keys {', '.join(KEYS)}, e.g. "
+            f"{EXAMPLE_YAML}")
+    m, r, others, accel, why = found[0]
     upstream = max(others, key=lambda h: (len(roadnet.connections(h, m)), h))
     highway = [*reversed(_chain(roadnet, upstream, upstream=True)), m]
-    desc_m = NetDescription((), (), m, tuple(accel), "inferred")
+    desc_m = NetDescription((), (), m, accel, "inferred")
     highway += _chain(roadnet, m, upstream=False, through=desc_m)[1:]
-    ramp = list(reversed(_chain(roadnet, r, upstream=True, one_lane=True)))
-    desc = NetDescription(tuple(highway), tuple(ramp), m, tuple(accel), "inferred")
+    ramp = list(reversed(_chain(roadnet, r, upstream=True, max_lanes=roadnet.num_lanes(r))))
+    reasons = {
+        "highway": f"{len(highway)} edge(s) along the most connected lanes up from {upstream!r} and down from {m!r}",
+        "ramp": f"{len(ramp)} edge(s) up from {r!r} over edges no wider than it; {why}",
+        "merge_edge": f"{m!r}, where the ramp joins",
+        "accel_lanes": f"lane(s) {list(accel)} of {m!r}: the ramp's lanes lead into them and they end there",
+    }
+    desc = NetDescription(tuple(highway), tuple(ramp), m, accel, "inferred", reasons)
     validate(roadnet, desc)
     return desc
 
@@ -174,7 +195,7 @@ def _dropped_lanes(roadnet: RoadNet, edge: str) -> set[int]:
     return {lane.index for lane in lanes if not lane.successors}
 
 
-def _chain(roadnet: RoadNet, start: str, *, upstream: bool, one_lane: bool = False,
+def _chain(roadnet: RoadNet, start: str, *, upstream: bool, max_lanes: int | None = None,
            through: NetDescription | None = None) -> list[str]:
     """Edges from `start` following the strongest connection up- or downstream, `start` first."""
     chain, seen = [start], {start}
@@ -192,7 +213,7 @@ def _chain(roadnet: RoadNet, start: str, *, upstream: bool, one_lane: bool = Fal
                 for e, _ in roadnet.lane(cur, i).successors:
                     counts[e] = counts.get(e, 0) + 1
             cands = [(c, e) for e, c in counts.items()]
-        cands = [(c, e) for c, e in cands if e not in seen and (not one_lane or roadnet.num_lanes(e) == 1)]
+        cands = [(c, e) for c, e in cands if e not in seen and (max_lanes is None or roadnet.num_lanes(e) <= max_lanes)]
         if not cands:
             return chain
         cands.sort(reverse=True)

@@ -85,11 +85,11 @@ class Spawn:
 
 
 def route_ids(desc: NetDescription) -> dict[str, tuple[str, ...]]:
-    """One highway route per possible start edge, and the ramp route through the merge edge onwards."""
+    """One route per possible start edge: on the highway, and on the ramp through the merge edge onwards."""
     hw = desc.highway
-    routes = {f"hw_{i}": hw[i:] for i in range(len(hw))}
-    routes["ramp"] = desc.ramp + hw[hw.index(desc.merge_edge):]
-    return routes
+    on = hw[hw.index(desc.merge_edge):]
+    return {**{f"hw_{i}": hw[i:] for i in range(len(hw))},
+            **{f"ramp_{i}": desc.ramp[i:] + on for i in range(len(desc.ramp))}}
 
 
 def idm_gap(speed: float, desired: float, tau: float, min_gap: float) -> float:
@@ -111,10 +111,6 @@ class _Planner:
         self.plan: list[Spawn] = []
         self.flows: list[Flow] = []
         self.n_av = self.n_hv = 0
-        sc = cfg.scenario
-        if sc.place_from < 0 or sc.place_to > self.length:
-            raise ConfigError(f"scenario.place_from / place_to: [{sc.place_from}, {sc.place_to}] m must lie on "
-                              f"the highway, [0, {self.length:.1f}] m long in {net.road.net_file}")
 
     def uniform(self, bounds: tuple[float, float]) -> float:
         return float(self.rng.uniform(*bounds))
@@ -124,17 +120,18 @@ class _Planner:
         edge, pos = self.net.highway_position(s)
         lane = self.net.through_lanes(edge)[rank]
         route = f"hw_{self.hw_index[edge]}"
+        limit = self.road.lane(edge, lane).speed
         if kind == KIND_AV:
             vid, self.n_av = av_id(self.n_av), self.n_av + 1
-            self.plan.append(Spawn(vid, KIND_AV, route, lane, pos, speed))
+            # The AV's vType has speedFactor 1: SUMO refuses a departure above the lane's limit.
+            self.plan.append(Spawn(vid, KIND_AV, route, lane, pos, min(speed, limit)))
         else:
             vid, self.n_hv = f"hv_{self.n_hv}", self.n_hv + 1
             hv = self.cfg.hv
             driver = {"tau": self.uniform(hv.tau_range), "sigma": self.uniform(hv.sigma_range),
                       "speed_factor": self.uniform(hv.speed_factor), **driver}
             # Never faster than the driver wants to go there: SUMO refuses such a departure.
-            top = min(driver["speed_factor"] * self.road.lane(edge, lane).speed,
-                      driver.get("max_speed") or hv.max_speed)
+            top = min(driver["speed_factor"] * limit, driver.get("max_speed") or hv.max_speed)
             self.plan.append(Spawn(vid, KIND_HV, route, lane, pos, min(speed, top), **driver))
 
     def window(self, ranks: list[int], n_avs: int, n_hvs: int) -> None:
@@ -160,24 +157,39 @@ class _Planner:
         # A random permutation of AV and HV labels over the chosen slots interleaves the classes.
         is_av = np.zeros(n_total, dtype=bool)
         is_av[rng.choice(n_total, size=n_avs, replace=False)] = True
-        speeds = rng.uniform(*sc.speed_range, size=n_total)
+        # Factors of each vehicle's own lane's limit, or m/s.
+        speeds = rng.uniform(*(sc.speed_range_factor or sc.speed_range), size=n_total)
         for k, slot in enumerate(chosen):
             s, rank = slots[slot]
-            self.add(KIND_AV if is_av[k] else KIND_HV, s, rank, float(speeds[k]))
+            scale = 1.0 if sc.speed_range_factor is None else self.lane_limit(s, rank)
+            self.add(KIND_AV if is_av[k] else KIND_HV, s, rank, float(speeds[k]) * scale)
+
+    def lane_limit(self, s: float, rank: int) -> float:
+        """[m/s] speed limit of through lane `rank` at chainage `s`."""
+        edge, _ = self.net.highway_position(s)
+        return self.road.lane(edge, self.net.through_lanes(edge)[rank]).speed
 
     def merger(self) -> float:
-        """Place the merging vehicle on the ramp; returns the time [s] it needs to the merge edge."""
-        sc, desc, road = self.cfg.scenario, self.desc, self.road
-        ramp_len = road.edge_length(desc.ramp[0])
-        if not 0 <= sc.merger_pos[0] <= sc.merger_pos[1] < ramp_len:
-            raise ConfigError(f"scenario.merger_pos: must be within the ramp edge {desc.ramp[0]!r} "
-                              f"(0 to {ramp_len:.1f} m), got {list(sc.merger_pos)}")
-        pos, speed = self.uniform(sc.merger_pos), self.uniform(sc.merger_speed)
+        """Place the merging vehicle on the ramp (`merger_time`, `merger_distance` or `merger_pos`, capped at the
+        ramp's start); returns the time [s] it needs to the merge edge at its initial speed."""
+        sc, net = self.cfg.scenario, self.net
+        ramp = net.desc.ramp
+        speed = self.uniform(sc.merger_speed)
+        if sc.merger_pos is not None:
+            k, pos = 0, self.uniform(sc.merger_pos)
+            left = net.chainage.merge_start - net.ramp_offsets[ramp[0]] - pos
+        else:
+            before = self.uniform(sc.merger_distance) if sc.merger_distance is not None else (
+                self.uniform(sc.merger_time) * speed)
+            k, pos, left = net.ramp_position(before)
+        lanes = self.road.num_lanes(ramp[k])
+        lane = lanes - 1 if sc.merger_lane is None else min(sc.merger_lane, lanes - 1)
         m = self.cfg.merger
-        self.plan.append(Spawn(MERGER_ID, KIND_MERGER, "ramp", 0, pos, speed, self.uniform(m.tau_range),
-                               self.uniform(m.sigma_range), self.uniform(m.speed_factor)))
-        to_merge = sum(road.edge_length(e) for e in desc.ramp) - pos
-        return to_merge / max(speed, 0.1)
+        tau, sigma, factor = self.uniform(m.tau_range), self.uniform(m.sigma_range), self.uniform(m.speed_factor)
+        # SUMO refuses a departure above the lane's limit x the driver's speed factor (or its top speed).
+        speed = min(speed, self.road.lane(ramp[k], lane).speed * factor, m.max_speed)
+        self.plan.append(Spawn(MERGER_ID, KIND_MERGER, f"ramp_{k}", lane, pos, speed, tau, sigma, factor))
+        return left / max(speed, 0.1)
 
 
 def _place_window(p: _Planner) -> None:
@@ -192,6 +204,11 @@ def _place_stream(p: _Planner) -> None:
     if rank >= p.n_lanes:
         raise ConfigError(f"scenario.placement stream: the lane beside the acceleration lane is not a through lane "
                           f"of every highway edge in {road.net_file}")
+    breaks = p.net.lane_breaks(rank, until=desc.merge_edge)
+    if breaks:
+        raise ConfigError(f"scenario.placement stream: the stream's lane (through lane {rank} from the right, the "
+                          f"one the merging vehicle enters) does not run through to the merge in {road.net_file}: "
+                          f"{breaks[0]}; use placement window, or a net whose lane runs through")
     merger_time = p.merger()
     speed = p.uniform(sc.stream_speed)
     limit = road.lane(desc.merge_edge, p.net.through_lanes(desc.merge_edge)[rank]).speed
