@@ -376,7 +376,7 @@ class ScenarioConfig(_Section):
         "or speed_range [-]")
     speed_range: NonNegativeSpan | None = Field(None, description="... in m/s [m/s]")
     merger_time: NonNegativeSpan | None = Field(
-        (4.0, 6.5), description="the merging vehicle starts on the ramp this long (at its initial speed) before it "
+        (3.6, 5.4), description="the merging vehicle starts on the ramp this long (at its initial speed) before it "
         "reaches the acceleration lane; or merger_distance, or merger_pos [s]")
     merger_distance: NonNegativeSpan | None = Field(
         None, description="... this far before the acceleration lane, along the ramp [m]")
