@@ -32,12 +32,29 @@ log = logging.getLogger("cosim")
 
 
 # -- shared options ------------------------------------------------------------------------------------
-def add_config_arguments(parser: argparse.ArgumentParser, default: str | None = "configs/default.yaml") -> None:
-    """The config options every env-using command shares."""
+def add_config_arguments(parser: argparse.ArgumentParser, default: str | None = "configs/default.yaml",
+                         net: bool = True) -> None:
+    """The config options every env-using command shares: --config, --set and (with `net`) --net."""
     parser.add_argument("--config", default=default, help="experiment YAML (default: %(default)s)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config key, e.g. --set reward.phi=0.785 (repeatable); a path given here "
                              "(net.file) is relative to the working directory, one in a YAML file to that file")
+    if net:
+        parser.add_argument("--net", type=Path, default=None, metavar="NET.net.xml",
+                            help="run on this SUMO net instead of the config's (its description YAML is read from "
+                                 "beside it, else inferred; the scenario follows the net: cosim check-net NET)")
+
+
+def config_overrides(args: argparse.Namespace) -> list[str]:
+    """The command line's config overrides: every --set, then --net as `net.file` (with its description found
+    beside it or inferred), checked to exist."""
+    overrides = list(args.overrides)
+    net = getattr(args, "net", None)
+    if net is not None:
+        if not net.is_file():
+            raise ConfigError(f"--net {net}: not found (expected a SUMO .net.xml)")
+        overrides += [f"net.file={net.resolve()}", "net.description=null"]
+    return overrides
 
 
 def _backend_arguments(parser: argparse.ArgumentParser) -> None:
@@ -107,7 +124,7 @@ def _run_scenario(args: argparse.Namespace) -> int:
     _positive(args, "episodes")
     if args.seed is not None:  # with the seeds after it, before anything runs or is written
         check_seed("--seed", args.seed, args.episodes)
-    env = parallel_env(args.config, args.overrides)  # a bad config fails here, before the folder is made
+    env = parallel_env(args.config, config_overrides(args))  # a bad config fails here, before the folder is made
     if args.save_routes is not None:  # before SUMO starts: a bad folder is the user's error, not a lost run
         try:
             args.save_routes.mkdir(parents=True, exist_ok=True)
@@ -146,7 +163,7 @@ def _bench(args: argparse.Namespace) -> int:
     from cosim.config import load_config
 
     _positive(args, "episodes", "resets")
-    bench(load_config(args.config, args.overrides), args.episodes, args.resets)
+    bench(load_config(args.config, config_overrides(args)), args.episodes, args.resets)
     return 0
 
 
@@ -173,7 +190,7 @@ def _train(args: argparse.Namespace) -> int:
     _positive(args, "workers", "episodes")
     if args.budget_min is not None and args.budget_min < 0:
         raise ConfigError(f"--budget-min: must be >= 0, got {args.budget_min}")
-    cfg = load_config(args.config, overrides=args.overrides)
+    cfg = load_config(args.config, overrides=config_overrides(args))
     out = args.out or Path("runs") / Path(args.config).stem
     result = train(cfg, out, workers=args.workers, episodes=args.episodes, budget_min=args.budget_min,
                    resume=args.resume, device=args.device, allow_config_change=args.allow_config_change,
@@ -206,7 +223,7 @@ def _sweep(args: argparse.Namespace) -> int:
     from cosim.config import load_config
     from cosim.evaluation.stats import format_table
 
-    cfg = load_config(args.config, args.overrides)
+    cfg = load_config(args.config, config_overrides(args))
     command = "cosim sweep " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["sweep"] else ""
     result = sweep(cfg, args.out, args.phi, args.seeds, args.budget_min, args.eval_episodes, args.eval_workers,
                    args.baselines, command, Backend(args.backend, args.ray_address))
@@ -228,8 +245,6 @@ def _evaluate_arguments(parser: argparse.ArgumentParser) -> None:
                              "Stable-Baselines3 model given by --checkpoint (scripts/train_sb3.py) "
                              "(default: checkpoint)")
     parser.add_argument("--episodes", type=int, help="evaluation episodes (default: evaluate.episodes, 100)")
-    parser.add_argument("--net", type=Path, help="evaluate on another .net.xml (its description is found "
-                                                 "beside it or inferred)")
     parser.add_argument("--seed", type=int, help=f"first evaluation seed (default: {EVAL_SEED_START:,}, disjoint "
                                                  "from training seeds)")
     parser.add_argument("--workers", type=int, help="worker processes (default: 1)")
@@ -247,12 +262,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     if args.run is not None and not (args.run / "config.yaml").is_file():
         raise CosimError(f"--run {args.run}: not a training run folder (no config.yaml; `cosim train` writes one)")
     config = args.config or (args.run / "config.yaml" if args.run else "configs/default.yaml")
-    overrides = list(args.overrides)
-    if args.net is not None:
-        if not args.net.is_file():
-            raise ConfigError(f"--net {args.net}: not found")
-        overrides += [f"net.file={args.net.resolve()}", "net.description=null"]
-    cfg = load_config(config, overrides)
+    cfg = load_config(config, config_overrides(args))
     ec = cfg.evaluate
     episodes = ec.episodes if args.episodes is None else args.episodes
     workers = ec.workers if args.workers is None else args.workers
@@ -288,6 +298,47 @@ def _trained_policy(args: argparse.Namespace, greedy: bool) -> Any:
     return TrainedPolicy(str(find_checkpoint(args.run, args.checkpoint)), greedy)
 
 
+# -- check-net -----------------------------------------------------------------------------------------
+def _check_net_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("net", type=Path, metavar="NET", help="the SUMO .net.xml (its description YAML beside it, "
+                        "else inferred)")
+    add_config_arguments(parser, net=False)
+    parser.add_argument("--episodes", type=int, default=100, help="episodes per baseline (default: %(default)s)")
+    parser.add_argument("--max-episodes", type=int, default=400,
+                        help="more episodes, up to this many, while a target's interval straddles its bound "
+                             "(default: %(default)s)")
+    parser.add_argument("--workers", type=int, default=2, help="worker processes (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=EVAL_SEED_START, help="first evaluation seed")
+    parser.add_argument("--suggest", action="store_true",
+                        help="where the merge is no dilemma, measure settings that may make it one, one after the "
+                             "other (--episodes each), and report the first that does")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="keep the report (check.md, check.json) and the baselines' evaluations here "
+                             "(default: a temporary folder, removed)")
+
+
+def _check_net(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from cosim.config import load_config
+    from cosim.evaluation.checknet import check_net
+    from cosim.workers import run_folder
+
+    _positive(args, "episodes", "workers")
+    check_at_least("--max-episodes", args.max_episodes, args.episodes)
+    check_seed("--seed", args.seed, args.max_episodes)
+    args.overrides.append(f"net.file={args.net.resolve()}")
+    if not args.net.is_file():
+        raise ConfigError(f"NET {args.net}: not found (expected a SUMO .net.xml)")
+    cfg = load_config(args.config, args.overrides)
+    if args.out is not None:
+        check_net(cfg, args.out, args.episodes, args.max_episodes, args.workers, args.seed, args.suggest)
+        return 0
+    with tempfile.TemporaryDirectory(prefix="cosim_check_", dir=run_folder()) as tmp:
+        check_net(cfg, Path(tmp), args.episodes, args.max_episodes, args.workers, args.seed, args.suggest)
+    return 0
+
+
 # -- compare -------------------------------------------------------------------------------------------
 def _compare_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("runs", nargs="+", type=Path, help="evaluation folders, or run folders with eval/")
@@ -311,6 +362,8 @@ COMMANDS: dict[str, Command] = {
     "build-net": ("build an on-ramp merge network with netconvert", _build_net_arguments, _build_net),
     "run-scenario": ("run the env with a scripted or random policy", _run_scenario_arguments, _run_scenario),
     "bench": ("measure env speed against a bare libsumo loop", _bench_arguments, _bench),
+    "check-net": ("pre-flight of a net: its summary, the scenario on it, the baselines and a dilemma verdict",
+                  _check_net_arguments, _check_net),
     "train": ("train AV policies with multi-agent A2C or PPO", _train_arguments, _train),
     "sweep": ("train and evaluate every (SVO angle, seed) within a budget, report against baselines",
               _sweep_arguments, _sweep),

@@ -206,7 +206,7 @@ def _given(data: Mapping[str, Any], keys: Sequence[str]) -> bool:
 
 def _one_of_twins(data: Any, groups: tuple[Twins, ...]) -> Any:
     """Before a section validates: an error naming both keys where two alternatives are given; where an absolute
-    alternative is given, the relative one's default is dropped (null)."""
+    alternative is given, the relative one's default is dropped (null); where none is, it holds."""
     if not isinstance(data, Mapping):
         return data
     data = dict(data)
@@ -218,6 +218,9 @@ def _one_of_twins(data: Any, groups: tuple[Twins, ...]) -> Any:
                            f"one absolute); give one, e.g. set {a} to null", b)
         if given and given[0] is not group[0]:
             data.update(dict.fromkeys((k for k in group[0] if k not in data), None))
+        elif not given:  # none stated (a null included): the relative alternative's default
+            for k in group[0]:
+                data.pop(k, None)
     return data
 
 

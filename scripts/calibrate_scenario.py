@@ -25,13 +25,14 @@ import logging
 import math
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
+from cosim.cli import add_config_arguments, config_overrides
 from cosim.config import EVAL_SEED_START, load_config
 from cosim.errors import CosimError
+from cosim.evaluation.checknet import POLICIES, targets_met
 from cosim.evaluation.runner import Baseline, evaluate
 from cosim.evaluation.stats import format_table, mean_ci
 from cosim.evaluation.store import seed_rows
@@ -39,23 +40,10 @@ from cosim.files import atomic_write_text
 
 log = logging.getLogger("calibrate")
 
-POLICIES = ("idle", "scripted", "courteous", "sumo")
-# (policy, metric, bound, test on the interval's mean) for the default scenario.
-TARGETS: list[tuple[str, str, str, Callable[[float], bool]]] = [
-    ("idle", "merge success [%]", "<= 60", lambda m: m <= 60.0),
-    ("scripted", "merge success [%]", "<= 60", lambda m: m <= 60.0),
-    ("courteous", "merge success [%]", ">= 90", lambda m: m >= 90.0),
-    ("courteous", "crash [%]", "<= 10", lambda m: m <= 10.0),
-    ("scripted", "crash [%]", "<= 15", lambda m: m <= 15.0),
-    ("sumo", "crash [%]", "== 0", lambda m: m == 0.0),
-]
-
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--config", default="configs/default.yaml")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
-    parser.add_argument("--net", type=Path, default=None, help="another .net.xml (description beside it or inferred)")
+    add_config_arguments(parser)  # --config, --set, --net as in every cosim command
     parser.add_argument("--episodes", type=int, default=200)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--seed", type=int, default=EVAL_SEED_START, help="first evaluation seed")
@@ -65,9 +53,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/calibration"))
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
-    overrides = list(args.overrides)
-    if args.net is not None:
-        overrides += [f"net.file={args.net.resolve()}", "net.description=null"]
+    overrides = config_overrides(args)
     cfg = load_config(args.config, overrides)
     summaries, walls = {}, {}
     for name in args.policies:
@@ -78,20 +64,15 @@ def main() -> None:
         log.info("%s: %d episodes in %.0f s", name, summaries[name]["episodes"], walls[name])
     table = format_table({k: v["metrics"] for k, v in summaries.items()},
                          {k: v["episodes"] for k, v in summaries.items()}, markdown=True)
-    verdicts = []
-    for policy, metric, bound, ok in TARGETS:
-        if policy in summaries:
-            m = summaries[policy]["metrics"][metric]
-            verdicts.append({"policy": policy, "metric": metric, "target": bound, "mean": m["mean"],
-                             "ci": [m["ci_low"], m["ci_high"]], "met": bool(ok(m["mean"]))})
+    verdicts = targets_met(summaries)
     lines = [f"# Scenario calibration: {cfg.net.file}", "",
              f"Config `{args.config}`{' with ' + ', '.join(overrides) if overrides else ''}; evaluation seeds "
              f"{args.seed}..{args.seed + args.episodes - 1}, the same for every policy. Wall time of this run "
              "(episodes done before a resume not counted): "
              + ", ".join(f"{k} {v:.0f} s" for k, v in walls.items()) + ".", "", table, "",
              "| target | mean [95% CI] | met |", "|---|---|---|"]
-    lines += [f"| {v['policy']}: {v['metric']} {v['target']} | {v['mean']:.1f} [{v['ci'][0]:.1f}, {v['ci'][1]:.1f}] "
-              f"| {'yes' if v['met'] else 'NO'} |" for v in verdicts]
+    lines += [f"| {v['target']} | {v['mean']:.1f} [{v['ci'][0]:.1f}, {v['ci'][1]:.1f}] | "
+              f"{'yes' if v['met'] else 'NO'} |" for v in verdicts]
     incentives = [returns_under(args, overrides, phi, walls, cfg.reward.phi) for phi in args.phis]
     if incentives:
         others = list(incentives[0]["courteous_minus"])
@@ -110,8 +91,7 @@ def main() -> None:
             lows = [ci["ci_low"] for ci in r["courteous_minus"].values()]
             # Egoistic: some baseline out-earns courteous; otherwise courteous out-earns every other one.
             want, met = ("below another", min(highs) < 0) if r["phi"] == 0 else ("above all", min(lows) > 0)
-            verdicts.append({"policy": "courteous", "metric": f"return at phi {r['phi']:.4f}", "target": want,
-                             "met": bool(met)})
+            verdicts.append({"target": f"courteous: return at phi {r['phi']:.4f} {want}", "met": bool(met)})
             lines.append(f"- phi {r['phi']:.4f}: courteous AVs' return {want} (95% CI of the paired difference "
                          f"apart from 0): {'yes' if met else 'NO'}")
     args.out.mkdir(parents=True, exist_ok=True)

@@ -6,16 +6,21 @@ the `.net.xml` path.
 Bad parameters and a failing netconvert raise `cosim.errors.NetError` with a message naming the parameter or
 netconvert's stderr. `add_arguments` / `run` are the `cosim build-net` command.
 
-Geometry (metres, SUMO world frame, no offset normalisation so positions match the node file):
+Geometry (metres, SUMO world frame, no offset normalisation so positions match the node file), by default:
 
     x = 0          U              U+A                        U+A+D
     hw_in  ------> hw_merge -----> hw_out ------------------->        highway, top border at y = 0
-    (L lanes)      (L+1 lanes)     (L lanes)
-                 /  lane 0 = acceleration lane, no connection onward (lane drop)
-          ramp  /   1 lane, straight diagonal from below (the right side in driving direction)
+    (L lanes)      (L+R lanes)     (L lanes)
+                 /  lanes 0..R-1 = acceleration lanes, no connection onward (lane drop)
+          ramp  /   R lanes, straight diagonal from below (the right side in driving direction)
 
 Lanes are spread to the right of the edge line (SUMO's default), so highway lane i of hw_in lines up with
-lane i+1 of hw_merge and lane i of hw_out, and the ramp's centre line ends on hw_merge lane 0's centre line.
+lane i+R of hw_merge and lane i of hw_out, and the ramp's centre line ends on the centre of the acceleration
+lanes. Other shapes of the usual kinds, for nets like a user's: the approach, the ramp and the road after the
+merge split into several edges (`hw_in_0, hw_in_1, ...`, `ramp_0, ...`, `hw_out_0, ...`), a highway that bends
+left on a radius (`curve_radius`; the ramp still joins from the right), a ramp of several lanes, the leftmost
+lane ending after the first edge past the merge (`lane_drop`), and edge ids of one's own (`ids`, e.g. OSM's
+`-4711#0`).
 """
 
 from __future__ import annotations
@@ -24,7 +29,8 @@ import logging
 import math
 import os
 import subprocess
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from cosim.errors import NetError
@@ -41,6 +47,7 @@ JUNCTION_RADIUS = 0.5
 MIN_ACCEL_LENGTH = 20.0  # [m]
 HIGHWAY_PRIORITY = 3
 RAMP_PRIORITY = 1
+CURVE_STEP = 20.0  # [m] between two shape points of a curved edge
 
 
 @dataclass(frozen=True)
@@ -56,10 +63,19 @@ class MergeGeometry:
     ramp_speed: float = 22.22  # [m/s] speed limit of the ramp
     lane_width: float = 3.2  # [m]
     name: str = "merge"  # file stem of every output
+    ramp_lanes: int = 1  # lanes of the ramp, each leading into an acceleration lane of its own
+    upstream_edges: int = 1  # edges the approach is split into
+    ramp_edges: int = 1
+    downstream_edges: int = 1
+    lane_drop: bool = False  # the leftmost lane ends at the end of the first edge past the merge
+    curve_radius: float = 0.0  # [m] the highway bends left on this radius; 0: straight
+    ids: Mapping[str, str] = field(default_factory=dict)  # edge id -> the id to write instead
 
     def __post_init__(self) -> None:
-        if isinstance(self.lanes, bool) or not isinstance(self.lanes, int) or self.lanes < 1:
-            raise NetError(f"merge net: lanes must be an integer >= 1, got {self.lanes!r}")
+        for key in ("lanes", "ramp_lanes", "upstream_edges", "ramp_edges", "downstream_edges"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise NetError(f"merge net: {key} must be an integer >= 1, got {value!r}")
         for key in ("upstream_length", "accel_length", "ramp_length", "downstream_length",
                     "highway_speed", "ramp_speed", "lane_width"):
             value = getattr(self, key)
@@ -70,6 +86,21 @@ class MergeGeometry:
                            f"from the ramp, got {self.accel_length!r}")
         if not self.name or any(c in self.name for c in "/\\") or self.name.startswith("."):
             raise NetError(f"merge net: name must be a plain file stem, got {self.name!r}")
+        if self.lane_drop and (self.lanes < 2 or self.downstream_edges < 2):
+            raise NetError("merge net: lane_drop needs lanes >= 2 and downstream_edges >= 2 (the lane ends at the end "
+                           "of the first edge past the merge)")
+        if self.curve_radius and (not math.isfinite(self.curve_radius) or self.curve_radius < 50.0):
+            raise NetError(f"merge net: curve_radius must be 0 (straight) or at least 50 m, got {self.curve_radius!r}")
+
+    def edge_names(self) -> dict[str, list[str]]:
+        """Edge ids by role, upstream to downstream, as written (after `ids`)."""
+
+        def split(base: str, n: int) -> list[str]:
+            return [base] if n == 1 else [f"{base}_{k}" for k in range(n)]
+
+        names = {"upstream": split("hw_in", self.upstream_edges), "merge": ["hw_merge"],
+                 "downstream": split("hw_out", self.downstream_edges), "ramp": split("ramp", self.ramp_edges)}
+        return {role: [self.ids.get(e, e) for e in edges] for role, edges in names.items()}
 
 
 def build_merge_net(
@@ -84,10 +115,16 @@ def build_merge_net(
     ramp_speed: float = 22.22,
     lane_width: float = 3.2,
     name: str = "merge",
+    **shape: object,
 ) -> Path:
-    """Write the merge net's sources, run netconvert and write the description; return the `.net.xml` path."""
+    """Write the merge net's sources, run netconvert and write the description; return the `.net.xml` path.
+    `shape`: MergeGeometry's other fields (ramp_lanes, upstream_edges, ramp_edges, downstream_edges, lane_drop,
+    curve_radius, ids)."""
+    unknown = set(shape) - set(MergeGeometry.__dataclass_fields__)
+    if unknown:
+        raise NetError(f"merge net: unknown parameter(s) {sorted(unknown)}")
     geom = MergeGeometry(lanes, upstream_length, accel_length, ramp_length, downstream_length,
-                         highway_speed, ramp_speed, lane_width, name)
+                         highway_speed, ramp_speed, lane_width, name, **shape)  # type: ignore[arg-type]
     out_dir = Path(out_dir)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -135,56 +172,108 @@ def run_netconvert(out_dir: Path, name: str) -> Path:
     return net_file
 
 
+def _centre(g: MergeGeometry, c: float) -> tuple[float, float, float]:
+    """(x, y, heading [rad]) of the highway's edge line at chainage `c` [m]."""
+    if not g.curve_radius:
+        return c, 0.0, 0.0
+    r, th = g.curve_radius, c / g.curve_radius
+    return r * math.sin(th), r * (1.0 - math.cos(th)), th
+
+
+def _chainages(g: MergeGeometry) -> dict[str, float]:
+    """Chainage [m] of every highway node, by node id, upstream to downstream."""
+    u, a, d = g.upstream_length, g.accel_length, g.downstream_length
+    nodes = {"hw_start": 0.0}
+    nodes.update({f"up_{k}": u * k / g.upstream_edges for k in range(1, g.upstream_edges)})
+    nodes["merge"], nodes["drop"] = u, u + a
+    nodes.update({f"down_{k}": u + a + d * k / g.downstream_edges for k in range(1, g.downstream_edges)})
+    nodes["hw_end"] = u + a + d
+    return nodes
+
+
+def _ramp_point(g: MergeGeometry, back: float) -> tuple[float, float]:
+    """The ramp's centre line `back` [m] before its end, which lies on the acceleration lanes' centre."""
+    x, y, th = _centre(g, g.upstream_length)
+    off = (g.lanes + 0.5 * g.ramp_lanes) * g.lane_width  # right of the edge line
+    ex, ey = x + off * math.sin(th), y - off * math.cos(th)
+    a = th + math.radians(RAMP_ANGLE_DEG)
+    return ex - back * math.cos(a), ey - back * math.sin(a)
+
+
+def _ramp_nodes(g: MergeGeometry) -> list[tuple[str, float, float]]:
+    """The ramp's nodes before the merge node, upstream first."""
+    out = []
+    for k in range(g.ramp_edges):
+        x, y = _ramp_point(g, g.ramp_length * (1.0 - k / g.ramp_edges))
+        out.append(("ramp_start" if k == 0 else f"ramp_{k}", x, y))
+    return out
+
+
 def _nodes_xml(g: MergeGeometry) -> str:
-    merge_x = g.upstream_length
-    drop_x = merge_x + g.accel_length
-    end_x = drop_x + g.downstream_length
-    rx, ry = _ramp_start(g)
-    rows = [
-        ("hw_start", 0.0, 0.0, "priority"),
-        ("merge", merge_x, 0.0, "priority"),
-        ("drop", drop_x, 0.0, "priority"),
-        ("hw_end", end_x, 0.0, "priority"),
-        ("ramp_start", rx, ry, "priority"),
-    ]
-    lines = [f'    <node id="{i}" x="{x:.2f}" y="{y:.2f}" type="{t}" radius="{JUNCTION_RADIUS}"/>'
-             for i, x, y, t in rows]
+    rows = [(i, *_centre(g, c)[:2]) for i, c in _chainages(g).items()] + _ramp_nodes(g)
+    lines = [f'    <node id="{i}" x="{x:.2f}" y="{y:.2f}" type="priority" radius="{JUNCTION_RADIUS}"/>'
+             for i, x, y in rows]
     return _xml("nodes", "nodes_file", lines)
 
 
-def _ramp_start(g: MergeGeometry) -> tuple[float, float]:
-    end_x, end_y = g.upstream_length, _accel_lane_y(g)
-    a = math.radians(RAMP_ANGLE_DEG)
-    return end_x - g.ramp_length * math.cos(a), end_y - g.ramp_length * math.sin(a)
+def _shape(g: MergeGeometry, c0: float, c1: float) -> str:
+    """` shape="..."` following the curve from chainage c0 to c1; nothing on a straight highway."""
+    if not g.curve_radius:
+        return ""
+    n = max(2, math.ceil((c1 - c0) / CURVE_STEP) + 1)
+    points = (_centre(g, c0 + (c1 - c0) * k / (n - 1)) for k in range(n))
+    return ' shape="' + " ".join(f"{x:.2f},{y:.2f}" for x, y, _ in points) + '"'
 
 
-def _accel_lane_y(g: MergeGeometry) -> float:
-    # Centre of hw_merge lane 0: below the lanes+1 lanes hanging right of the edge line at y = 0.
-    return -(g.lanes + 0.5) * g.lane_width
+def _highway_edges(g: MergeGeometry) -> list[tuple[str, str, str, int]]:
+    """(edge id, from node, to node, lanes) of the highway, upstream to downstream."""
+    names, nodes = g.edge_names(), list(_chainages(g))
+    edges = [*names["upstream"], *names["merge"], *names["downstream"]]
+    lanes = [g.lanes] * len(names["upstream"]) + [g.lanes + g.ramp_lanes] + [g.lanes] * len(names["downstream"])
+    if g.lane_drop:
+        for k in range(len(names["upstream"]) + 2, len(edges)):
+            lanes[k] = g.lanes - 1
+    return list(zip(edges, nodes[:-1], nodes[1:], lanes, strict=True))
 
 
 def _edges_xml(g: MergeGeometry) -> str:
-    rx, ry = _ramp_start(g)
     hw = f'speed="{g.highway_speed:.2f}" width="{g.lane_width:.2f}" priority="{HIGHWAY_PRIORITY}"'
-    lines = [
-        f'    <edge id="hw_in" from="hw_start" to="merge" numLanes="{g.lanes}" {hw}/>',
-        f'    <edge id="hw_merge" from="merge" to="drop" numLanes="{g.lanes + 1}" {hw}/>',
-        f'    <edge id="hw_out" from="drop" to="hw_end" numLanes="{g.lanes}" {hw}/>',
-        # spreadType center + explicit shape: the ramp's lane centre runs exactly onto lane 0's centre line.
-        f'    <edge id="ramp" from="ramp_start" to="merge" numLanes="1" speed="{g.ramp_speed:.2f}" '
-        f'width="{g.lane_width:.2f}" priority="{RAMP_PRIORITY}" spreadType="center" '
-        f'shape="{rx:.2f},{ry:.2f} {g.upstream_length:.2f},{_accel_lane_y(g):.2f}"/>',
-    ]
+    chain = _chainages(g)
+    lines = [f'    <edge id="{e}" from="{a}" to="{b}" numLanes="{n}" {hw}{_shape(g, chain[a], chain[b])}/>'
+             for e, a, b, n in _highway_edges(g)]
+    ramp = f'speed="{g.ramp_speed:.2f}" width="{g.lane_width:.2f}" priority="{RAMP_PRIORITY}" spreadType="center"'
+    nodes = _ramp_nodes(g)
+    for k, e in enumerate(g.edge_names()["ramp"]):
+        start, x0, y0 = nodes[k]
+        if k + 1 < len(nodes):
+            lines.append(f'    <edge id="{e}" from="{start}" to="{nodes[k + 1][0]}" numLanes="{g.ramp_lanes}" {ramp}/>')
+        else:
+            # The last edge's explicit shape ends exactly on the acceleration lanes' centre line.
+            ex, ey = _ramp_point(g, 0.0)
+            lines.append(f'    <edge id="{e}" from="{start}" to="merge" numLanes="{g.ramp_lanes}" {ramp} '
+                         f'shape="{x0:.2f},{y0:.2f} {ex:.2f},{ey:.2f}"/>')
     return _xml("edges", "edges_file", lines)
 
 
 def _connections_xml(g: MergeGeometry) -> str:
-    lines = [f'    <connection from="hw_in" to="hw_merge" fromLane="{i}" toLane="{i + 1}"/>'
-             for i in range(g.lanes)]
-    lines.append('    <connection from="ramp" to="hw_merge" fromLane="0" toLane="0"/>')
-    # hw_merge lane 0 gets no connection: the acceleration lane ends (lane drop).
-    lines += [f'    <connection from="hw_merge" to="hw_out" fromLane="{i + 1}" toLane="{i}"/>'
-              for i in range(g.lanes)]
+    names = g.edge_names()
+    hw = _highway_edges(g)
+    merge = len(names["upstream"])
+    r = g.ramp_lanes
+    lines = []
+    for k, ((a, _, _, na), (b, _, _, nb)) in enumerate(zip(hw, hw[1:], strict=False)):
+        if k + 1 == merge:  # into the merge edge: lanes i -> i + R; the ramp takes 0..R-1
+            pairs = [(i, i + r) for i in range(na)]
+        elif k == merge:  # out of it: the acceleration lanes 0..R-1 get no connection (they end)
+            pairs = [(i + r, i) for i in range(nb)]
+        else:  # lane i goes on as lane i; a lane with none onward ends (lane_drop)
+            pairs = [(i, i) for i in range(min(na, nb))]
+        lines += [f'    <connection from="{a}" to="{b}" fromLane="{i}" toLane="{j}"/>' for i, j in pairs]
+        if k + 1 == merge:
+            ramp = names["ramp"]
+            lines += [f'    <connection from="{x}" to="{y}" fromLane="{i}" toLane="{i}"/>'
+                      for x, y in zip(ramp, ramp[1:], strict=False) for i in range(r)]
+            lines += [f'    <connection from="{ramp[-1]}" to="{b}" fromLane="{i}" toLane="{i}"/>' for i in range(r)]
     return _xml("connections", "connections_file", lines)
 
 
@@ -196,10 +285,16 @@ def _xml(root: str, schema: str, lines: list[str]) -> str:
 
 
 def _description_yaml(g: MergeGeometry) -> str:
+    names = g.edge_names()
+    highway = [*names["upstream"], *names["merge"], *names["downstream"]]
+
+    def flow(ids: list[str]) -> str:
+        return "[" + ", ".join(ids if all(i.replace("_", "").isalnum() for i in ids) else map(repr, ids)) + "]"
+
     return (
         f"# Net description for {g.name}.net.xml: which edges are what.\n"
-        "highway: [hw_in, hw_merge, hw_out]\n"
-        "ramp: [ramp]\n"
-        "merge_edge: hw_merge\n"
-        "accel_lanes: [0]\n"
+        f"highway: {flow(highway)}\n"
+        f"ramp: {flow(names['ramp'])}\n"
+        f"merge_edge: {flow(names['merge'])[1:-1]}\n"
+        f"accel_lanes: [{', '.join(str(i) for i in range(g.ramp_lanes))}]\n"
     )

@@ -104,6 +104,7 @@ class MergeEnv(ParallelEnv):
         self.resolution_notes = resolved.notes
         for note in resolved.notes:
             log.warning("%s", note)
+        plan_episode(config, self.net, config.sim.seed)  # a placement this net makes impossible fails here, at once
         self.road, self.chainage = self.net.road, self.net.chainage
         self.zone = MergeZone.from_net(self.net)
         self.tracker = self.new_tracker()  # this episode's metrics, renewed at reset

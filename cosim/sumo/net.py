@@ -14,10 +14,12 @@ junction-internal and foreign edges). Problems raise `NetError` naming the file.
 from __future__ import annotations
 
 import bisect
+import hashlib
 from dataclasses import dataclass
 from functools import cached_property
 from itertools import accumulate
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -185,3 +187,63 @@ class Chainage:
         return out
 
 
+
+
+def file_sha256(path: str | Path) -> str:
+    """sha256 of a file's bytes (a net's identity: two runs on nets with the same hash ran on the same net)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def net_summary(net: Net) -> dict[str, Any]:
+    """What a traffic engineer asks of the net first, as plain data (JSON-ready): its file and sha256, where the
+    roles came from (the description file, or what the inference read), the highway edge by edge (lanes, through
+    lanes, length, speed limit), the approach and what follows the merge, the ramp, the acceleration lane and
+    the lane the merging vehicle must enter."""
+    road, desc = net.road, net.desc
+
+    def edge(e: str) -> dict[str, Any]:
+        lanes = road.edge(e).lanes
+        return {"id": e, "lanes": len(lanes), "length_m": round(road.edge_length(e), 1),
+                "speed_limits_kmh": sorted({round(lane.speed * 3.6) for lane in lanes})}
+
+    highway = [{**edge(e), "through_lanes": len(net.through_lanes(e))} for e in desc.highway]
+    chain = net.chainage
+    return {
+        "file": str(road.net_file), "sha256": file_sha256(road.net_file),
+        "description": desc.source, "roles": dict(desc.reasons),
+        "highway": highway, "merge_edge": desc.merge_edge,
+        "approach_m": round(chain.merge_start, 1), "after_merge_m": round(chain.highway_end - chain.merge_end, 1),
+        "ramp": [edge(e) for e in desc.ramp],
+        "ramp_to_accel_lane_m": round(chain.merge_start - net.ramp_offsets[desc.ramp[0]], 1),
+        "accel_lanes": list(desc.accel_lanes), "accel_length_m": round(net.accel_length, 1),
+        "target_lane": net.through_lanes(desc.merge_edge)[net.target_rank()],
+        "speed_limit_kmh": round(net.speed_limit * 3.6, 1),
+        "ramp_speed_limit_kmh": round(net.ramp_speed_limit * 3.6, 1),
+    }
+
+
+def summary_lines(summary: dict[str, Any]) -> list[str]:
+    """`net_summary` as a few lines of text (also Markdown list items)."""
+
+    def edges(items: list[dict[str, Any]]) -> str:
+        return " -> ".join(f"{e['id']} ({e['lanes']} lane{'s' * (e['lanes'] != 1)}, {e['length_m']:g} m, "
+                           f"{'/'.join(map(str, e['speed_limits_kmh']))} km/h)" for e in items)
+
+    lines = [f"net {summary['file']} (sha256 {summary['sha256'][:12]})",
+             f"highway: {edges(summary['highway'])}",
+             f"approach {summary['approach_m']:g} m before the merge edge {summary['merge_edge']!r}, "
+             f"{summary['after_merge_m']:g} m after the acceleration lane",
+             f"ramp: {edges(summary['ramp'])}; {summary['ramp_to_accel_lane_m']:g} m to the acceleration lane",
+             f"acceleration lane(s) {summary['accel_lanes']} of {summary['merge_edge']!r}: "
+             f"{summary['accel_length_m']:g} m; the merging vehicle enters lane {summary['target_lane']} (speed limit "
+             f"{summary['speed_limit_kmh']:g} km/h there, {summary['ramp_speed_limit_kmh']:g} km/h on the ramp)"]
+    source = summary["description"]
+    if source == "inferred":
+        lines += [f"{role} (inferred): {why}" for role, why in summary["roles"].items()]
+    else:
+        lines.append(f"roles from {source}")
+    return lines

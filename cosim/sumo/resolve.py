@@ -148,3 +148,32 @@ def _window(cfg: Config, net: Net, up: dict[str, Any], notes: list[str], where: 
         notes.append(f"{key}: {what} do not fit {where}: {fit} fit for sure on its {lanes} lane(s) of the "
                      f"{hi - lo:.0f} m placement window{' beside the stream' if sc.placement == 'stream' else ''} "
                      f"with min_gap {sc.min_gap:g} m and max_gap {sc.max_gap:g} m: placing {fit}")
+
+
+def scenario_lines(cfg: Config, net: Net) -> list[str]:
+    """A resolved config's scenario on `net`, in words (a few lines)."""
+    sc = cfg.scenario
+
+    def rng(pair: tuple[float, float], unit: str, fmt: str = ".1f") -> str:
+        return f"{pair[0]:{fmt}}-{pair[1]:{fmt}} {unit}" if pair[0] != pair[1] else f"{pair[0]:{fmt}} {unit}"
+
+    if sc.placement == "stream":
+        lane = net.through_lanes(net.desc.merge_edge)[net.target_rank()]
+        head = rng(sc.stream_head, "m", ".0f")
+        where = (f"a stream of HVs and {sc.n_avs} AVs in the lane the merging vehicle enters (lane {lane} of "
+                 f"{net.desc.merge_edge!r}) at {rng(sc.stream_speed, 'm/s')}, its head {head} past the merge edge's "
+                 f"start; {sc.n_hvs} HVs beside it in [{sc.place_from:.0f}, {sc.place_to:.0f}] m")
+    else:
+        speeds = (rng(sc.speed_range, "m/s") if sc.speed_range is not None
+                  else rng(sc.speed_range_factor, "x the lane's limit", ".2f"))
+        where = (f"{sc.n_avs} AVs and {sc.n_hvs} HVs over {window_lanes(cfg, net)} lanes in [{sc.place_from:.0f}, "
+                 f"{sc.place_to:.0f}] m at {speeds}")
+    if sc.merger_pos is not None:
+        start = f"at {rng(sc.merger_pos, 'm', '.0f')} along {net.desc.ramp[0]!r}"
+    elif sc.merger_distance is not None:
+        start = f"{rng(sc.merger_distance, 'm', '.0f')} before the acceleration lane"
+    else:
+        start = f"{rng(sc.merger_time, 's')} before the acceleration lane"
+    return [where, f"the merging vehicle starts {start} at {rng(sc.merger_speed, 'm/s')}",
+            f"AVs: top speed {cfg.av.max_speed:.1f} m/s, speed step {cfg.av.speed_step:.2f} m/s; observation speed "
+            f"scale {cfg.observation.speed_scale:.1f} m/s; HVs' top speed {cfg.hv.max_speed:.1f} m/s"]

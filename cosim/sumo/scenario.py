@@ -33,6 +33,7 @@ from cosim.config import Config, DriverConfig
 from cosim.errors import ConfigError
 from cosim.sumo.net import Net
 from cosim.sumo.netdesc import NetDescription
+from cosim.sumo.resolve import resolve
 from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER
 
 MERGER_ID = "merger"
@@ -258,6 +259,8 @@ PLACEMENTS: dict[str, Callable[[_Planner], None]] = {"window": _place_window, "s
 
 
 def plan_episode(cfg: Config, net: Net, seed: int) -> Plan:
+    """The episode `seed`'s vehicles for `cfg` on `net` (resolved on it first: `cosim.sumo.resolve`)."""
+    cfg = resolve(cfg, net).config  # a no-op on a config resolved already, as the env's
     planner = _Planner(cfg, net, seed)
     PLACEMENTS[cfg.scenario.placement](planner)
     sc, hv = cfg.scenario, cfg.hv
@@ -282,6 +285,7 @@ def _vtype(vid: str, drv: DriverConfig, tau: float, sigma: float, speed_factor: 
 
 
 def write_episode(plan: Plan, cfg: Config, desc: NetDescription, path: Path) -> None:
+    """Write `plan` as a SUMO route file; `cfg` resolved on the net (`resolve(cfg, net).config`, the env's)."""
     av = cfg.av
     parts = ["<routes>\n"]
     hv = cfg.hv

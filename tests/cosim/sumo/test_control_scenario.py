@@ -11,6 +11,7 @@ from cosim.config import AVConfig, load_config
 from cosim.environment.control import Action, decide
 from cosim.errors import ConfigError
 from cosim.sumo.net import load_net
+from cosim.sumo.resolve import resolve
 from cosim.sumo.scenario import MERGER_ID, idm_gap, plan_episode, write_episode
 from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER
 
@@ -42,14 +43,14 @@ def test_decide_speed_and_lanes() -> None:
 def free_flow():
     cfg = load_config(ROOT / "configs" / "free_flow.yaml")
     net = load_net(cfg.net.file)
-    return cfg, net, net.desc
+    return resolve(cfg, net).config, net, net.desc
 
 
 @pytest.fixture(scope="module")
 def dilemma():
     cfg = load_config(ROOT / "configs" / "default.yaml")
     net = load_net(cfg.net.file)
-    return cfg, net, net.desc
+    return resolve(cfg, net).config, net, net.desc
 
 
 def _chainage(net, sp) -> float:
@@ -62,13 +63,14 @@ def test_window_plan_is_seeded_interleaved_and_complete(free_flow) -> None:
     assert a == b and a != c
     kinds = [sp.kind for sp in a.vehicles]
     assert kinds.count(KIND_AV) == cfg.scenario.n_avs and kinds.count(KIND_HV) == cfg.scenario.n_hvs
-    assert kinds.count(KIND_MERGER) == 1 and any(sp.vid == MERGER_ID and sp.route == "ramp" for sp in a.vehicles)
+    assert kinds.count(KIND_MERGER) == 1 and any(sp.vid == MERGER_ID and sp.route == "ramp_0" for sp in a.vehicles)
     assert a.flows == []
     hw = [sp for sp in a.vehicles if sp.kind != KIND_MERGER]
     s = np.array([_chainage(net, sp) for sp in hw])
     assert s.min() >= cfg.scenario.place_from and s.max() <= cfg.scenario.place_to + 1e-6
-    lo, hi = cfg.scenario.speed_range
-    assert all(lo <= sp.speed <= hi for sp in hw)
+    limit = net.road.lane("hw_in", 0).speed  # every lane's on this net
+    lo, hi = (f * limit for f in cfg.scenario.speed_range_factor)  # of each vehicle's lane's limit
+    assert all(lo - 1e-9 <= sp.speed <= hi + 1e-9 for sp in hw)
     # No HV starts faster than it wants to drive (SUMO would refuse the departure).
     assert all(sp.speed <= sp.speed_factor * net.road.lane("hw_in", 0).speed + 1e-9 for sp in hw if sp.kind == KIND_HV)
     # AVs are not all at the front or all at the back: HVs between them.
@@ -87,7 +89,6 @@ def test_stream_plan_is_a_dense_stream_with_a_guide_av(dilemma) -> None:
     rank = net.target_rank()
     assert rank == 0  # the right lane: beside the acceleration lane
     merge_start = net.highway_offsets[desc.merge_edge]
-    ramp_len = sum(net.road.edge_length(e) for e in desc.ramp)
     a, b = plan_episode(cfg, net, 3), plan_episode(cfg, net, 3)
     assert a == b and a != plan_episode(cfg, net, 4)
     in_time = 0
@@ -119,8 +120,10 @@ def test_stream_plan_is_a_dense_stream_with_a_guide_av(dilemma) -> None:
                 assert speed + sc.av_speed_offset[0] - 1e-9 <= follower.speed <= speed + sc.av_speed_offset[1] + 1e-9
         assert _chainage(net, stream[-1]) - hv.length >= sc.place_from
         merger = next(sp for sp in plan.vehicles if sp.kind == KIND_MERGER)
-        assert sc.merger_pos[0] <= merger.pos <= sc.merger_pos[1]
-        merger_time = (ramp_len - merger.pos) / merger.speed
+        assert merger.route == "ramp_0" and sc.merger_speed[0] <= merger.speed <= sc.merger_speed[1]
+        # It starts merger_time before the acceleration lane (junction included), at its initial speed.
+        merger_time = (merge_start - net.ramp_offsets[desc.ramp[0]] - merger.pos) / merger.speed
+        assert sc.merger_time[0] - 1e-6 <= merger_time <= sc.merger_time[1] + 1e-6
         lags = [(merge_start - _chainage(net, sp)) / speed - merger_time for sp in stream if sp.kind == KIND_AV]
         in_time += any(sc.guide_window[0] <= lag <= sc.guide_window[1] for lag in lags)
         # On this long highway the placed stream outlasts the horizon: no flow needed behind it.
@@ -152,13 +155,20 @@ def test_episode_file_holds_vehicles_and_flows(free_flow, tmp_path: Path) -> Non
     assert '<flow id="inflow"' in text and 'probability="0.250000"' in text
 
 
-def test_too_many_vehicles_is_a_clear_error(free_flow) -> None:
+def test_too_many_hvs_are_capped_and_too_many_avs_are_a_clear_error(free_flow) -> None:
     cfg, net, desc = free_flow
-    with pytest.raises(ConfigError, match="do not fit"):
-        plan_episode(load_config(cfg, {"scenario.n_hvs": 200}), net, 0)
+    many = resolve(load_config(cfg, {"scenario.n_hvs": 200}), net)
+    (note,) = many.notes
+    assert note.startswith("scenario.n_hvs: 200 HVs do not fit") and f"placing {many.config.scenario.n_hvs}" in note
+    plan = plan_episode(many.config, net, 0)
+    assert sum(sp.kind == KIND_HV for sp in plan.vehicles) == many.config.scenario.n_hvs > 0
+    with pytest.raises(ConfigError, match="do not fit"):  # the agents are not capped: their number is the env's
+        plan_episode(load_config(cfg, {"scenario.n_avs": 200}), net, 0)
 
 
-def test_placement_window_off_the_highway_is_a_clear_error(free_flow) -> None:
+def test_placement_window_off_the_highway_is_capped_with_a_note(free_flow) -> None:
     cfg, net, desc = free_flow
-    with pytest.raises(ConfigError, match="place_from / place_to"):
-        plan_episode(load_config(cfg, {"scenario.place_to": 5000.0}), net, 0)
+    capped = resolve(load_config(cfg, {"scenario.place_from": 0.0, "scenario.place_to": 5000.0}), net)
+    assert capped.config.scenario.place_to == pytest.approx(net.highway_length)
+    assert any(n.startswith("scenario.place_from / place_to: [0, 5000] m reaches off the highway")
+               for n in capped.notes)

@@ -114,7 +114,7 @@ def test_inference_failure_explains_the_yaml(tmp_path: Path, two_lane_net: Path)
     con = tmp_path / "merge.con.xml"
     con.write_text("\n".join(line for line in con.read_text().splitlines() if 'from="ramp"' not in line))
     net = load_roadnet(run_netconvert(tmp_path, "merge"))
-    msg = r"cannot infer the net description(.|\n)*merge\.yaml(.|\n)*accel_lanes:"
+    msg = r"cannot infer the on-ramp merge: .*found none.* beside the net \(merge\.yaml\).*accel_lanes: \[0\]\}$"
     with pytest.raises(NetError, match=msg):
         infer_net_description(net)
     with pytest.raises(NetError, match="cannot infer"):
