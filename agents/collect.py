@@ -5,9 +5,12 @@ episode seeds and steps them until each episode is over, filling `batch` (agents
 returning a `Collected` with each finished episode's summary, per-agent returns and reward terms. The
 workers are split into two halves that take turns: while one half's envs step (in their processes), the
 learner acts for the other half, one batched forward over all its live agents. Observations come from the
-pool's shared slots; the values of truncated agents' final observations are computed as they arrive. An
-episode whose worker failed is dropped from the batch (`valid` cleared) and counted as lost, not as an
-episode.
+pool's shared slots; the values of truncated agents' final observations are computed as they arrive.
+A worker that fails is replaced by the pool; its fresh replacement plays the episode again (the same seed and
+actions: SUMO is deterministic) up to the command that failed. A failure that comes back there is no bad luck
+but the episode's own (SUMO refusing an input, say): training stops at once with `EpisodeError` naming it,
+instead of cycling through restarts. Otherwise the episode goes on from there; one whose replay failed
+elsewhere is dropped from the batch (`valid` cleared) and counted as lost, not as an episode.
 """
 
 from __future__ import annotations
@@ -20,7 +23,8 @@ import numpy as np
 import torch
 
 from agents.multiagent import Batch, MultiAgentPolicy
-from cosim.workers import WorkerPool
+from cosim.errors import EpisodeError
+from cosim.workers import StepResult, WorkerPool
 
 
 @dataclass
@@ -62,6 +66,8 @@ def collect(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, seeds: lis
             for w, res in zip(ws, results, strict=True):
                 t = step[w] - 1  # the step this result answers; -1 for a reset
                 if res.lost:
+                    res = _replay(pool, batch, w, seeds[w], t, res.error)
+                if res.lost:
                     batch.valid[:, w] = False
                     out.lost += 1
                     running.discard(w)
@@ -89,6 +95,24 @@ def collect(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, seeds: lis
                 _act(pool, policy, batch, live, step, update)
     out.samples = int(batch.valid.sum())
     return out
+
+
+def _replay(pool: WorkerPool, batch: Batch, w: int, seed: int, t: int, error: str) -> StepResult:
+    """Worker w failed answering decision step `t` (-1: the reset) of episode `seed` with `error`: its replacement
+    plays the episode again with the actions already taken; returns the answer to step `t`, or a lost result
+    where the replay failed before it. `EpisodeError` where it fails at `t` again (see the module doc)."""
+    pool.send_reset([w], [seed])
+    (res,) = pool.recv([w])
+    at = -1  # the command the replay is at: -1 the reset, k decision step k + 1
+    while not res.lost and at < t:
+        at += 1
+        pool.send_step([w], batch.actions[at, w].numpy()[None])  # what was sent (absent agents' are ignored)
+        (res,) = pool.recv([w])
+    if res.lost and at == t:
+        where = "its reset" if t < 0 else f"decision step {t + 1}"
+        raise EpisodeError(f"training episode (seed {seed}) fails the same way on a fresh worker at {where}: "
+                              f"{res.error or error}; a fault of this config or net, not bad luck")
+    return res
 
 
 def _act(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, live: list[tuple[int, np.ndarray]],

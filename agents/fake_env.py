@@ -8,7 +8,8 @@ optimal policy is learnable from the observation. Accelerate (3) "crashes" the a
 terminated. Agents still running at `horizon` steps are truncated. Infos carry `reward_terms` and, on
 the last step, `episode`. `fail_once_file` makes the env fail once (across processes) at step
 `fail_at_step`, to test worker restarts: raise `SimulationError`, or with `fail_by_exit` end its process
-(as a SUMO crash does). `step_sleep` [s] makes each step take that long (a slow simulation).
+(as a SUMO crash does); `fail_always` makes every episode fail there (an input SUMO refuses). `step_sleep`
+[s] makes each step take that long (a slow simulation).
 `make_fake_env(**kw)` is a picklable env factory; `play_episode(env, seed)` plays one episode for
 `WorkerPool.send_call`, with a `keep_alive` beat each step as evaluation's episodes do.
 """
@@ -37,7 +38,7 @@ class CueEnv(ParallelEnv):
     def __init__(self, n_agents: int = 2, obs_shape: tuple[int, int, int, int] = (2, 4, 8, 16),
                  dtype: str = "float32", horizon: int = 8, fail_once_file: str | None = None,
                  fail_at_step: int = 3, fail_by_exit: bool = False, step_sleep: float = 0.0,
-                 render_mode: str | None = None) -> None:
+                 render_mode: str | None = None, fail_always: bool = False) -> None:
         self.possible_agents = [f"av_{i}" for i in range(n_agents)]
         self.agents: list[str] = []
         self.render_mode = render_mode
@@ -46,6 +47,7 @@ class CueEnv(ParallelEnv):
         self.fail_once_file = fail_once_file
         self.fail_at_step = fail_at_step
         self.fail_by_exit = fail_by_exit
+        self.fail_always = fail_always
         self.step_sleep = step_sleep
         self._high = _HIGH[dtype]
         self._obs_space = spaces.Box(0, self._high, shape=tuple(obs_shape), dtype=np.dtype(dtype))
@@ -91,6 +93,8 @@ class CueEnv(ParallelEnv):
     def step(self, actions: dict[str, int]) -> tuple[dict, dict, dict, dict, dict]:
         self._t += 1
         time.sleep(self.step_sleep)
+        if self.fail_always and self._t == self.fail_at_step:
+            raise SimulationError("Departure speed for vehicle 'merger' is too high (fake SUMO refusing an input)")
         if self.fail_once_file and self._t == self.fail_at_step:
             try:
                 Path(self.fail_once_file).open("x").close()  # exclusive create: one process fails, once

@@ -25,12 +25,14 @@ from __future__ import annotations
 
 import copy
 import functools
+import json
 import logging
 import random
 import signal
 import sys
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -56,14 +58,16 @@ from agents.logs import RunLogger, cut_logs, log_gaps
 from agents.multiagent import Batch, MultiAgentPolicy
 from agents.rollout import Backend
 from cosim.config import EVAL_SEED_START, Config, read_yaml
-from cosim.errors import ConfigError
-from cosim.files import FolderLock, atomic_write_text, stale_temporaries
+from cosim.errors import ConfigError, EpisodeError, NetError
+from cosim.files import FolderLock, FolderState, atomic_write_text, stale_temporaries
 from cosim.progress import Heartbeat
+from cosim.sumo.setting import setting
 from cosim.workers import EnvFactory
 
 log = logging.getLogger(__name__)
 
 COUNTERS = ("episodes", "updates", "samples", "restarts", "lost_episodes")
+NET_RECORD = "net.json"  # the net a run trains on (path, sha256, summary) and the scenario resolved on it
 
 
 @dataclass(frozen=True)
@@ -135,6 +139,17 @@ def _record_changes(out_dir: Path, changes: dict[str, tuple[Any, Any]], update: 
     atomic_write_text(path, yaml.safe_dump(history, sort_keys=False))
 
 
+def _check_net_unchanged(record: Path, where: dict[str, Any]) -> None:
+    """On resume: warn when the run's net file is not the one it trained on so far (same path, other content)."""
+    try:
+        before = json.loads(record.read_text(encoding="utf-8"))["net"]["sha256"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return  # a run from before nets were recorded, or a damaged record: nothing to compare
+    if before != where["net"]["sha256"]:
+        log.warning("%s: the net %s changed since this run began (sha256 %s, now %s): the run goes on, on the new one",
+                    record, where["net"]["file"], before[:12], where["net"]["sha256"][:12])
+
+
 def _default_env_factory(cfg: Config) -> EnvFactory:
     from cosim.environment.merge_env import parallel_env  # the meeting point of agents/ and cosim/, through PettingZoo
 
@@ -144,10 +159,12 @@ def _default_env_factory(cfg: Config) -> EnvFactory:
 def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: int | None = None,
           budget_min: float | None = None, resume: bool = False, device: str | None = None,
           env_factory: EnvFactory | None = None, progress: bool | None = None,
-          allow_config_change: bool = False, backend: str = "local", ray_address: str | None = None) -> TrainResult:
-    """Train (or, with `resume`, continue training) the AVs of `cfg` into `out_dir` (see module doc)."""
+          allow_config_change: bool = False, backend: str = "local", ray_address: str | None = None,
+          overrides: Sequence[str] = ()) -> TrainResult:
+    """Train (or, with `resume`, continue training) the AVs of `cfg` into `out_dir` (see module doc); `overrides`:
+    the command line's, recorded in the run's net.json."""
     run = _Run.open(cfg, Path(out_dir), workers, episodes, budget_min, resume, device, env_factory,
-                    allow_config_change, progress, Backend(backend, ray_address))
+                    allow_config_change, progress, Backend(backend, ray_address), overrides)
     try:
         with StopRequest() as stop:
             while not run.finished() and not stop.requested:
@@ -161,6 +178,9 @@ def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: i
         run.interrupted = stop.requested
     except KeyboardInterrupt:  # a second Ctrl-C, or one outside the loop
         run.interrupted = True
+    except (ConfigError, NetError, EpisodeError):  # the input's fault: the folder as it was, then say why
+        run.failed = True
+        raise
     finally:
         run.close()
     return run.result()
@@ -199,7 +219,7 @@ class _Run:
     @classmethod
     def open(cls, cfg: Config, out_dir: Path, workers: int | None, episodes: int | None, budget_min: float | None,
              resume: bool, device: str | None, env_factory: EnvFactory | None, allow_change: bool = False,
-             progress: bool | None = None, backend: Backend | None = None) -> _Run:
+             progress: bool | None = None, backend: Backend | None = None, overrides: Sequence[str] = ()) -> _Run:
         """Every check on the input and the run folder, before anything in the folder changes."""
         backend = backend or Backend()
         backend.check()
@@ -214,6 +234,7 @@ class _Run:
             raise ConfigError(f"--out {out_dir}: is a file, not a folder")
         lock = FolderLock(out_dir, "cosim train")
         lock.acquire(create=False)  # a live run's files are its own, even to read: refused before any check
+        before = FolderState.capture(out_dir)
         try:
             ckpt_path = out_dir / CHECKPOINT_NAME
             if not resume and ckpt_path.exists():
@@ -232,16 +253,23 @@ class _Run:
                 logged_every = int(payload.get("train", {}).get("log_every", tc.log_every))
                 for gap in log_gaps(out_dir, int(counters["updates"]), int(counters["episodes"]), logged_every):
                     log.warning("%s", gap)
+            where = setting(cfg, overrides) if env_factory is None else None  # the merge env's: its net
+            if where is not None and resume:
+                _check_net_unchanged(out_dir / NET_RECORD, where)
             return cls(cfg, tc, out_dir, payload, env_factory or _default_env_factory(cfg), changes, progress,
-                       backend, lock)
+                       backend, lock, before, where)
         except BaseException:
             lock.release()
             raise
 
     def __init__(self, cfg: Config, tc: TrainConfig, out_dir: Path, payload: dict[str, Any] | None,
                  env_factory: EnvFactory, changes: dict[str, tuple[Any, Any]] | None = None,
-                 progress: bool | None = None, backend: Backend | None = None, lock: FolderLock | None = None) -> None:
+                 progress: bool | None = None, backend: Backend | None = None, lock: FolderLock | None = None,
+                 before: FolderState | None = None, where: dict[str, Any] | None = None) -> None:
         self.cfg, self.tc, self.out_dir = cfg, tc, out_dir
+        self.before = before or FolderState.capture(out_dir)
+        self.failed = False  # a CosimError stopped the run (set by `train`)
+        self.checkpointed: dict[str, int] | None = None  # the counters of this command's last checkpoint
         self.lock = lock or FolderLock(out_dir, "cosim train")
         self.ckpt_path = out_dir / CHECKPOINT_NAME
         self.counters = {k: 0 for k in COUNTERS}
@@ -283,6 +311,8 @@ class _Run:
                 log.warning("resuming with a changed config: %s", ", ".join(changes))
                 _record_changes(out_dir, changes, self.counters["updates"])
             atomic_write_text(out_dir / "config.yaml", yaml.safe_dump(run_config(cfg, tc), sort_keys=False))
+            if where is not None:
+                atomic_write_text(out_dir / NET_RECORD, json.dumps(where, indent=2) + "\n")
             self.logger = RunLogger(out_dir, self.counters["updates"], self.counters["episodes"])
         except BaseException:
             self.pool.close()
@@ -386,13 +416,17 @@ class _Run:
                 "train": self.tc.model_dump(), "config": self.cfg.to_dict(), "phis": list(self.cfg.phis())}
 
     def checkpoint(self, payload: dict[str, Any] | None = None) -> None:
-        save_checkpoint(self.ckpt_path, payload or self.payload())
+        payload = payload or self.payload()
+        save_checkpoint(self.ckpt_path, payload)
+        self.checkpointed = {k: int(payload["counters"][k]) for k in ("updates", "episodes")}
 
     def close(self) -> None:
         """The final checkpoint (of the last complete update when stopped inside one), then the folder is free."""
         try:
             restarts = self.restarts_before + self.pool.restarts  # the update in progress's restarts did happen
-            if self.boundary is None:
+            if self.failed:
+                self._undo()
+            elif self.boundary is None:
                 self.counters["restarts"] = restarts
                 self.checkpoint()
                 if self.interrupted:
@@ -412,6 +446,18 @@ class _Run:
             self.pool.close()
             self.logger.close()
             self.lock.release()
+
+    def _undo(self) -> None:
+        """After a failure of the input: the folder as the command found it, or, where this command checkpointed
+        already, as at that checkpoint (its logs cut back to it; the checkpoint is a complete update)."""
+        self.logger.close()
+        if self.checkpointed is None:
+            self.before.restore()
+            log.warning("the run folder %s is as it was before this command", self.out_dir)
+        else:
+            cut_logs(self.out_dir, self.checkpointed["updates"], self.checkpointed["episodes"])
+            log.warning("the run folder %s holds this command's last checkpoint (update %d); resume it once the "
+                        "cause is fixed", self.out_dir, self.checkpointed["updates"])
 
     def result(self) -> TrainResult:
         c = self.counters

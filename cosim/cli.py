@@ -190,11 +190,12 @@ def _train(args: argparse.Namespace) -> int:
     _positive(args, "workers", "episodes")
     if args.budget_min is not None and args.budget_min < 0:
         raise ConfigError(f"--budget-min: must be >= 0, got {args.budget_min}")
-    cfg = load_config(args.config, overrides=config_overrides(args))
+    overrides = config_overrides(args)
+    cfg = load_config(args.config, overrides=overrides)
     out = args.out or Path("runs") / Path(args.config).stem
     result = train(cfg, out, workers=args.workers, episodes=args.episodes, budget_min=args.budget_min,
                    resume=args.resume, device=args.device, allow_config_change=args.allow_config_change,
-                   backend=args.backend, ray_address=args.ray_address)
+                   backend=args.backend, ray_address=args.ray_address, overrides=overrides)
     log.info("trained %d episodes (%d updates, %d agent-samples, %.0f s) into %s", result.episodes, result.updates,
              result.samples, result.train_s, result.out_dir)
     return 130 if result.interrupted else 0
@@ -262,7 +263,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     if args.run is not None and not (args.run / "config.yaml").is_file():
         raise CosimError(f"--run {args.run}: not a training run folder (no config.yaml; `cosim train` writes one)")
     config = args.config or (args.run / "config.yaml" if args.run else "configs/default.yaml")
-    cfg = load_config(config, config_overrides(args))
+    overrides = config_overrides(args)
+    cfg = load_config(config, overrides)
     ec = cfg.evaluate
     episodes = ec.episodes if args.episodes is None else args.episodes
     workers = ec.workers if args.workers is None else args.workers
@@ -277,7 +279,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     policy = _trained_policy(args, greedy) if args.policy in ("checkpoint", "sb3") else Baseline(args.policy)
     summary = evaluate(cfg, policy, out, episodes=episodes, seed=seed,
                        workers=workers, trajectories=trajectories, confidence=ec.confidence, run_dir=args.run,
-                       plots=not args.no_plots)
+                       plots=not args.no_plots, overrides=overrides)
     log.info("wrote %s", Path(out) / "summary.json")
     label = out.name if args.run is None else args.run.name
     print(format_table({label: summary["metrics"]}, {label: summary["episodes"]}, confidence=ec.confidence))

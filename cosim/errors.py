@@ -22,6 +22,11 @@ class SimulationError(CosimError):
     """SUMO failed to start, crashed, or a second simulation was requested in one process."""
 
 
+class EpisodeError(SimulationError):
+    """An episode that fails the same way again on a fresh worker (the same seed and actions): a fault of the
+    config or the net (SUMO refusing an input, say), not bad luck; a run stops at once, its folder as it was."""
+
+
 def check_at_least(name: str, value: float | None, least: float) -> None:
     """`ConfigError` naming `name` (a key or a flag) unless `value` is None or >= `least`."""
     if value is not None and value < least:

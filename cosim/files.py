@@ -12,6 +12,7 @@ for a missing file; a `CosimError` naming the file and line for a repeated heade
 one file leave, or a cell of an `ints` column that is no integer), `write_csv(path, rows, fields)` (atomic),
 `AppendCsv`, and `column(rows, name)`, a column as floats (booleans as 0/1, empty or unparsable cells as NaN).
 `FolderLock(folder, command)`: one writer per results folder (a lock the kernel drops when its owner dies).
+`FolderState.capture(folder)` / `restore()`: a results folder put back as a command found it.
 """
 
 from __future__ import annotations
@@ -20,11 +21,13 @@ import csv
 import fcntl
 import io
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -233,3 +236,36 @@ def _same_file(fd: int, path: Path) -> bool:
     except FileNotFoundError:
         return False
     return (st.st_dev, st.st_ino) == (os.fstat(fd).st_dev, os.fstat(fd).st_ino)
+
+
+@dataclass
+class FolderState:
+    """A results folder as a command found it, to put back when the command fails on a fault of its input
+    before it made anything worth keeping (a training run's checkpoint, an evaluation's episode): nothing that
+    it made is left to block its rerun, nothing of the user's is lost."""
+
+    folder: Path
+    existed: bool
+    files: frozenset[Path]  # every file below the folder
+    texts: dict[str, bytes]  # the files a run rewrites or appends to, by name, as they were
+
+    KEPT: ClassVar[tuple[str, ...]] = ("config.yaml", "config_changes.yaml", "updates.csv", "episodes.csv",
+                                       "evaluation.json")
+
+    @classmethod
+    def capture(cls, folder: Path) -> FolderState:
+        files = frozenset(p for p in folder.rglob("*") if p.is_file()) if folder.is_dir() else frozenset()
+        texts = {name: (folder / name).read_bytes() for name in cls.KEPT if (folder / name).is_file()}
+        return cls(folder, folder.is_dir(), files, texts)
+
+    def restore(self) -> None:
+        if not self.existed:
+            shutil.rmtree(self.folder, ignore_errors=True)
+            return
+        for path in sorted(self.folder.rglob("*"), reverse=True):  # files before the folders that hold them
+            if path.is_file() and path not in self.files and path.name != LOCK_NAME:
+                path.unlink()
+            elif path.is_dir() and not any(path.iterdir()) and not any(f.is_relative_to(path) for f in self.files):
+                path.rmdir()
+        for name, text in self.texts.items():
+            atomic_write_text(self.folder / name, text.decode("utf-8"))

@@ -21,7 +21,7 @@ Contract:
   times in a row (a systematic fault, not bad luck).
   Bad input (`ConfigError`, `NetError`) fails the same way in every process and is raised at once.
 - `send_call(ws, fn, args)` runs the picklable `fn(env, arg)` in each worker of `ws` (a whole evaluation
-  episode, say); `recv(ws, lost=...)` returns its small result, or `lost()` for a worker that failed. A long
+  episode, say); `recv(ws, lost=...)` returns its small result, or `lost(why)` for a worker that failed. A long
   call stays within `timeout` per step by calling `keep_alive()` each step: each beat restarts the worker's
   timeout, so an episode may take any time while a stopped or hung worker is found within `timeout`.
 - Temporary files carry their owner, so that none outlives a run, whatever ended it. Each process that starts
@@ -191,11 +191,13 @@ class StepResult:
     reward_terms: dict[str, np.ndarray] = field(default_factory=dict)  # term name -> (N,) float32
     episode: dict[str, Any] | None = None  # the env's summary when this step ended the episode
     lost: bool = False  # the env failed: the worker was replaced, the running episode is lost
+    error: str = ""  # why, when lost: the first line of the failure
 
     @classmethod
-    def lost_episode(cls, n: int) -> StepResult:
+    def lost_episode(cls, n: int, error: str = "") -> StepResult:
         """The result of a worker that failed: no agent alive, the running episode lost."""
-        return cls(np.zeros(n, bool), np.zeros(n, np.float32), np.zeros(n, bool), np.zeros(n, bool), lost=True)
+        return cls(np.zeros(n, bool), np.zeros(n, np.float32), np.zeros(n, bool), np.zeros(n, bool), lost=True,
+                   error=error)
 
 
 class _EnvRunner:
@@ -321,6 +323,12 @@ def agreed_spec(specs: Sequence[EnvSpec], who: str) -> EnvSpec:
 
 class WorkerFailure(Exception):
     """A worker's env raised, its process died, or it stayed silent (internal: the pool replaces it)."""
+
+
+def failure_line(exc: BaseException) -> str:
+    """A failure's first line, without the worker's name (the same failure reads the same in any worker)."""
+    line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    return re.sub(r"^rollout-\d+: (env raised )?", "", line)
 
 
 class _Worker:
@@ -496,9 +504,9 @@ class WorkerPool(PoolCommands):
         """Run `fn(env, arg)` in each worker of `ws` (local processes only: Ray actors take resets and steps)."""
         self._send(ws, "call", [(fn, a) for a in args])
 
-    def recv(self, ws: Sequence[int], lost: Callable[[], Any] | None = None) -> list[Any]:
+    def recv(self, ws: Sequence[int], lost: Callable[[str], Any] | None = None) -> list[Any]:
         """Results of the last command sent to each worker of `ws`; a failed worker is replaced and its result is
-        `lost()` (default: `StepResult.lost_episode`)."""
+        `lost(why)`, `why` the failure's first line (default: `StepResult.lost_episode`)."""
         got: dict[int, Any] = {}
         failed: dict[int, WorkerFailure] = {}
         # All of them at once, so that each one's beats are heard as they come and its silence is timed alone.
@@ -532,7 +540,8 @@ class WorkerPool(PoolCommands):
                 continue
             self._replace(w, failed[w])
             self.obs[w] = 0
-            out.append(StepResult.lost_episode(n) if lost is None else lost())
+            why = failure_line(failed[w])
+            out.append(StepResult.lost_episode(n, why) if lost is None else lost(why))
         return out
 
     def close(self) -> None:

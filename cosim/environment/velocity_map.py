@@ -103,6 +103,9 @@ class VelocityMapper:
     """Renders and stacks every agent's VelocityMap. See the module docstring for the frame semantics."""
 
     def __init__(self, cfg: ObservationConfig, road: RoadRaster, n_agents: int) -> None:
+        if cfg.speed_scale is None:
+            raise ValueError("observation.speed_scale: not in m/s yet; resolve the config on its net first "
+                             "(cosim.sumo.resolve; an env does)")
         self.cfg = cfg
         self.n_agents = n_agents
         f, c, h, w = cfg.frames, len(cfg.channels), cfg.height_px, cfg.width_px

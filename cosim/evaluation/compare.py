@@ -5,13 +5,15 @@ Contract: `compare(dirs, out_dir, labels)` takes evaluation folders (written by 
 `out_dir`: `bars.png` (crash %, merge %, mean distance with 95% intervals), `merger_distance.png` (the
 merging vehicle's distance, overlaid), `training_curves.png` (when a run folder has the trainer's
 `episodes.csv`), per run `LABEL/` with the time-space diagrams, guide-AV speed profiles and top views of
-its recorded episodes, `summary.json` / `summary.csv` (all runs' metrics) and `report.md` (the table and
-the figures). Each run is summarised from its `episodes.csv` over the seeds its `summary.json` names, as
-`cosim evaluate` did (`cosim.evaluation.store.checked_rows`): rows of other seeds in the file are left out;
-each run's own figures are `cosim.evaluation.plots.plot_evaluation`'s, as `cosim evaluate` draws them. Before
-anything is written, a folder without an evaluation, with a summary.json that is corrupt or lacks a key, or
-whose episodes.csv is missing or holds fewer of those episodes than its summary.json counts raises
-`CosimError` naming the file (and the counts).
+its recorded episodes, `summary.json` / `summary.csv` (all runs' metrics) and `report.md` (the table, what
+the runs ran on: net, scenario, overrides, flow window and detector, once where they share it, and the
+figures). Runs on different nets (by content) or episodes are compared with a warning. Each run is summarised
+from its `episodes.csv` over the seeds its `summary.json` names, as `cosim evaluate` did
+(`cosim.evaluation.store.checked_rows`): rows of other seeds in the file are left out; each run's own figures
+are `cosim.evaluation.plots.plot_evaluation`'s, as `cosim evaluate` draws them. Before anything is written, a
+folder without an evaluation, with a summary.json that is corrupt or lacks a key, or whose episodes.csv is
+missing or holds fewer of those episodes than its summary.json counts raises `CosimError` naming the file (and
+the counts).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from cosim.evaluation import plots
 from cosim.evaluation.stats import SUMMARY_METRICS, format_table, summarize
 from cosim.evaluation.store import Evaluation, checked_rows, find_evaluation
 from cosim.files import atomic_write_text, column, write_csv
+from cosim.sumo.setting import setting_lines
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +73,8 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
 
 
 # What makes two evaluations comparable, as summary.json records it: the same episodes of the same scenario.
-COMPARABLE = {"net": "net", "first_seed": "first evaluation seed", "requested_episodes": "episodes",
+COMPARABLE = {"net": "net", "net_sha256": "net file content (net_sha256)", "first_seed": "first evaluation seed",
+              "requested_episodes": "episodes",
               "scenario_sha256": "scenario (net, simulation, drivers, observation: scenario_sha256)"}
 
 
@@ -80,7 +84,7 @@ def incompatibilities(evals: Sequence[Evaluation]) -> list[str]:
     for key, what in COMPARABLE.items():
         values = {e.label: e.summary.get(key) for e in evals}
         if len({json.dumps(v) for v in values.values()}) > 1:
-            shown = {k: (v[:12] if key == "scenario_sha256" and isinstance(v, str) else v) for k, v in values.items()}
+            shown = {k: (v[:12] if key.endswith("sha256") and isinstance(v, str) else v) for k, v in values.items()}
             lines.append(f"different {what}: " + ", ".join(f"{k}: {v}" for k, v in shown.items()))
     return lines
 
@@ -104,6 +108,12 @@ def _report(evals: Sequence[Evaluation], metrics: dict, episodes: dict[str, int]
              "Student t for the other metrics]. Throughput, time loss and mean speed come from SUMO's own "
              "induction loops and tripinfo output.", "",
              format_table(metrics, episodes, markdown=True, confidence=conf), ""]
+    settings = {e.label: e.summary["setting"] for e in evals if "setting" in e.summary}
+    if settings and len({json.dumps(v, sort_keys=True) for v in settings.values()}) == 1:
+        lines += ["## Setting (the same for every run)", "", *setting_lines(next(iter(settings.values()))), ""]
+    else:
+        for label, where in settings.items():
+            lines += [f"## Setting of {label}", "", *setting_lines(where), ""]
     for title, path in figures.items():
         lines += [f"## {title.capitalize()}", "", f"![{title}]({path.relative_to(out_dir)})", ""]
     for label, paths in per_run.items():

@@ -20,7 +20,8 @@ Contract:
   holding an evaluation of another policy / checkpoint / net / config (`config_sha256`; the folder's
   location, `sim.output_dir`, is not part of it) is refused. One writer per folder (`cosim.files.FolderLock`,
   held from the first look at the folder to the summary): a second evaluation into it is refused while the
-  first lives.
+  first lives. An evaluation that fails before its first episode leaves the folder as it found it, and a folder
+  that holds no finished episode is anyone's: nothing blocks the corrected rerun.
 - `workers > 1` runs episodes on `cosim.workers.WorkerPool` (libsumo runs one simulation per process); a
   worker that gives no step for `evaluate.step_timeout` seconds is replaced (logged), and an episode whose
   worker failed is played again by its replacement.
@@ -48,10 +49,17 @@ from cosim.config import EVAL_SEED_START, Config, load_config
 from cosim.environment.control import Action
 from cosim.environment.merge_env import MergeEnv
 from cosim.environment.policies import POLICIES
-from cosim.errors import ConfigError, CosimError, check_at_least
-from cosim.evaluation.store import config_hash, save_trajectory, scenario_hash, summarize_evaluation
-from cosim.files import AppendCsv, FolderLock, atomic_write_text, read_csv
+from cosim.errors import ConfigError, CosimError, EpisodeError, check_at_least
+from cosim.evaluation.store import (
+    config_hash,
+    evaluation_report,
+    save_trajectory,
+    scenario_hash,
+    summarize_evaluation,
+)
+from cosim.files import AppendCsv, FolderLock, FolderState, atomic_write_text, read_csv
 from cosim.progress import Heartbeat
+from cosim.sumo.setting import setting
 from cosim.workers import START_TIMEOUT, WorkerPool, keep_alive
 
 log = logging.getLogger(__name__)
@@ -184,6 +192,11 @@ def _make_env(config: dict[str, Any]) -> MergeEnv:
 _RUNNER: Runner | None = None  # a worker process's runner, built at its first episode
 
 
+@dataclass(frozen=True)
+class _Lost:
+    why: str  # the failure's first line
+
+
 def _play(env: MergeEnv, job_seed: tuple[Job, int]) -> dict[str, Any]:
     """A worker's episode (`WorkerPool.send_call`): the policy is loaded once per process."""
     global _RUNNER
@@ -200,7 +213,8 @@ def run_episodes(job: Job, seeds: Sequence[int], workers: int = 1,
 
     Several workers run on `cosim.workers.WorkerPool`; a worker silent for `evaluate.step_timeout` within an
     episode is replaced, and an episode whose worker failed is played again by the replacement, up to
-    `max_restarts` failures over the evaluation."""
+    `max_restarts` failures over the evaluation; one that fails again on its fresh worker stops the evaluation
+    (`EpisodeError`): the same seed failing twice is the episode's own fault."""
     if workers <= 1 or len(seeds) <= 1:
         runner = Runner(job, _make_env(job.config))
         try:
@@ -214,15 +228,20 @@ def run_episodes(job: Job, seeds: Sequence[int], workers: int = 1,
                       restarts_key="an evaluation's max_restarts")
     try:
         todo = list(seeds)
+        failed: dict[int, str] = {}  # seed -> why its first worker failed
         while todo:
             batch, todo = todo[:len(pool)], todo[len(pool):]
             ws = list(range(len(batch)))
             pool.send_call(ws, _play, [(job, s) for s in batch])
-            for seed, row in zip(batch, pool.recv(ws, lost=lambda: None), strict=True):
-                if row is None:
-                    todo.append(seed)  # its worker failed and was replaced: play the episode again
-                else:
+            for seed, row in zip(batch, pool.recv(ws, lost=_Lost), strict=True):
+                if not isinstance(row, _Lost):
                     yield row
+                elif seed in failed:  # a fresh worker failed on it too: the episode's own fault, not bad luck
+                    raise EpisodeError(f"evaluation episode (seed {seed}) fails the same way on a fresh worker: "
+                                          f"{row.why}")
+                else:
+                    failed[seed] = row.why
+                    todo.append(seed)  # its worker failed and was replaced: play the episode again
     finally:
         pool.close()
 
@@ -230,27 +249,31 @@ def run_episodes(job: Job, seeds: Sequence[int], workers: int = 1,
 # -- the evaluation ------------------------------------------------------------------------------------
 def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: int = EVAL_SEED_START,
              workers: int = 1, trajectories: int = 3, confidence: float = 0.95, run_dir: Path | None = None,
-             plots: bool = True) -> dict[str, Any]:
+             plots: bool = True, overrides: Sequence[str] = ()) -> dict[str, Any]:
     """Evaluate `policy` on episodes `seed .. seed + episodes - 1` into `out_dir`; returns the summary dict
-    (also written to `out_dir/summary.json`). Resumes an interrupted evaluation in the same folder."""
+    (also written to `out_dir/summary.json`, with what it ran on: `cosim.sumo.setting.setting`, the
+    command line's `overrides` included; `report.md` words it). Resumes an interrupted evaluation in the same
+    folder."""
     check_counts(episodes, workers, trajectories)
     out_dir = Path(out_dir).resolve()
-    overrides = {**policy.overrides, "sim.outputs": True, "sim.output_dir": str(out_dir / "sumo")}
-    cfg = load_config(cfg, overrides)
+    cfg = load_config(cfg, {**policy.overrides, "sim.outputs": True, "sim.output_dir": str(out_dir / "sumo")})
     identity = policy.identity()
+    where = setting(cfg, overrides)
     meta = {"policy": policy.name, "checkpoint": identity["checkpoint"], "greedy": identity["greedy"],
-            "net": cfg.net.file, "run": None if run_dir is None else str(Path(run_dir).resolve()),
+            "net": cfg.net.file, "net_sha256": where["net"]["sha256"],
+            "run": None if run_dir is None else str(Path(run_dir).resolve()),
             "config_sha256": config_hash(cfg.to_dict()), "scenario_sha256": scenario_hash(cfg.to_dict()),
             "trained_updates": identity["trained_updates"], "model_sha256": identity["model_sha256"]}
     seeds = [seed + k for k in range(episodes)]
     job = Job(cfg.to_dict(), policy, str(out_dir), frozenset(seeds[:trajectories]))
     lock = FolderLock(out_dir, "cosim evaluate")
     lock.acquire(create=False)  # an evaluation under way there is refused before its files are read
+    before = FolderState.capture(out_dir)
+    csv_path = out_dir / "episodes.csv"
     try:
         Runner(job, _make_env(job.config)).close()  # bad nets and checkpoints fail here, before the folder is claimed
         lock.acquire()
         _claim(out_dir, meta, cfg)
-        csv_path = out_dir / "episodes.csv"
         writer = AppendCsv(csv_path)  # first: it drops a half-written last row
         done = {int(r["seed"]) for r in read_csv(csv_path, ints=("seed",))}
         todo = [s for s in seeds if s not in done]
@@ -267,23 +290,37 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
         checks = [float(r["distance_check"]) for r in rows if r.get("distance_check") not in (None, "", "nan")]
         summary = {**meta, "episodes": len(rows), "first_seed": seed, "requested_episodes": episodes,
                    "confidence": confidence, "metrics": metrics,
-                   "distance_check_max_m": max(checks) if checks else math.nan}
+                   "distance_check_max_m": max(checks) if checks else math.nan, "setting": where}
         atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2, allow_nan=True) + "\n")
         if checks and max(checks) > 0.5:
             log.warning("our distances and SUMO's tripinfo differ by up to %.2f m", max(checks))
+        figures: list[Path] = []
         if plots:
             from cosim.evaluation.plots import plot_evaluation  # matplotlib only when plotting
 
-            plot_evaluation(out_dir, out_dir / "plots", label=policy.name, rows=rows)
+            figures = plot_evaluation(out_dir, out_dir / "plots", label=policy.name, rows=rows)
+        atomic_write_text(out_dir / "report.md", evaluation_report(summary, figures, out_dir) + "\n")
         return summary
+    except CosimError:
+        if not _has_episodes(csv_path):  # nothing to keep: nothing may block the corrected rerun into this folder
+            before.restore()
+        raise
     finally:
         lock.release()
+
+
+def _has_episodes(csv_path: Path) -> bool:
+    """Whether an evaluation's episodes.csv holds a finished episode (a damaged one counts: it is not ours)."""
+    try:
+        return bool(read_csv(csv_path))
+    except CosimError:
+        return True
 
 
 def _claim(out_dir: Path, meta: dict[str, Any], cfg: Config) -> None:
     """Write evaluation.json and config.yaml, or check that an existing evaluation is the same one."""
     path = out_dir / "evaluation.json"
-    if path.is_file():
+    if path.is_file() and _has_episodes(out_dir / "episodes.csv"):  # a folder without an episode is anyone's
         try:
             old = json.loads(path.read_text(encoding="utf-8"))
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -292,7 +329,7 @@ def _claim(out_dir: Path, meta: dict[str, Any], cfg: Config) -> None:
             raise CosimError(f"{path}: not a JSON object ({old}); it records what this folder evaluated: move the "
                              "folder away and evaluate into a new --out")
         # trained_updates, model_sha256: only where recorded (folders from before they were).
-        later = ("trained_updates", "model_sha256")
+        later = ("trained_updates", "model_sha256", "net_sha256")
         differs = [k for k in ("policy", "checkpoint", "greedy", "net", *later)
                    if old.get(k) != meta[k] and (k in old or k not in later)]
         if differs:

@@ -6,7 +6,8 @@ and `pooled` pick the rows of the requested seeds and summarise them (`cosim.eva
 names what was evaluated (`find_evaluation` reads it: a `CosimError` naming it when it is no JSON object or lacks
 a key a reader needs). `checked_rows` gives an evaluation's rows checked against its summary: a `CosimError`
 naming `episodes.csv` and both counts when the file is missing or holds fewer episodes than the summary counts.
-`config_hash` and `scenario_hash` tell whether two folders evaluated the same episodes.
+`config_hash` and `scenario_hash` tell whether two folders evaluated the same episodes. `evaluation_report`
+is its report.md.
 """
 
 from __future__ import annotations
@@ -21,8 +22,9 @@ from typing import Any
 import numpy as np
 
 from cosim.errors import CosimError
-from cosim.evaluation.stats import summarize
+from cosim.evaluation.stats import format_table, summarize
 from cosim.files import atomic_path, read_csv
+from cosim.sumo.setting import setting_lines
 
 
 @dataclass(frozen=True)
@@ -146,3 +148,17 @@ def pooled(eval_dirs: Sequence[Path], first_seed: int, episodes: int) -> tuple[l
     return rows, summarize(rows)
 
 
+def evaluation_report(summary: dict[str, Any], figures: Sequence[Path], out_dir: Path) -> str:
+    """One evaluation's report.md: what was evaluated, on what, the metrics with their intervals, the figures."""
+    first, n = summary["first_seed"], summary["episodes"]
+    label = summary.get("policy", "policy")
+    what = f"policy **{label}**" + (f", checkpoint `{summary['checkpoint']}`" if summary.get("checkpoint") else "")
+    lines = [f"# Evaluation: {label}", "", f"{what}, {'greedy' if summary.get('greedy', True) else 'sampled'} "
+             f"actions, {n} episodes on evaluation seeds {first}..{first + n - 1}.", "", "## Setting", "",
+             *setting_lines(summary["setting"]), "", "## Metrics", "",
+             f"Mean [{summary['confidence']:.0%} interval: Wilson for rates, Student t otherwise].", "",
+             format_table({label: summary["metrics"]}, {label: n}, markdown=True, confidence=summary["confidence"]),
+             ""]
+    if figures:
+        lines += ["## Figures", "", *(f"![{p.stem}]({p.relative_to(out_dir)})" for p in figures), ""]
+    return "\n".join(lines)

@@ -18,7 +18,7 @@ from agents.multiagent import MultiAgentPolicy
 from agents.train import train
 from cosim.cli import main
 from cosim.config import load_config
-from cosim.errors import ConfigError, SimulationError
+from cosim.errors import ConfigError, EpisodeError, SimulationError
 
 pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
@@ -119,14 +119,30 @@ def test_incompatible_and_corrupt_checkpoints_are_clear_errors(tmp_path: Path) -
               env_factory=make_fake_env(n_agents=2), progress=False)
 
 
-def test_worker_failure_restarts_and_the_episode_is_not_counted(tmp_path: Path) -> None:
+def test_a_failed_worker_is_replaced_and_its_episode_goes_on_from_a_replay(tmp_path: Path) -> None:
     flag = tmp_path / "failed"
     run = tmp_path / "run"
     result = train(cfg_with(), run, workers=2, episodes=8,
                    env_factory=make_fake_env(n_agents=2, fail_once_file=str(flag), fail_at_step=3), progress=False)
     assert flag.exists()
-    assert result.restarts == 1 and result.lost_episodes == 1
+    # The replacement played the episode again up to the failed step and went on: nothing lost.
+    assert result.restarts == 1 and result.lost_episodes == 0
     assert len(episode_rows(run)) == result.episodes == 8
+
+
+@pytest.mark.parametrize("resume", [False, True])
+def test_an_episode_that_fails_again_on_a_fresh_worker_stops_at_once_leaving_the_folder(tmp_path: Path,
+                                                                                       resume: bool) -> None:
+    run = tmp_path / "run"
+    if resume:
+        train(cfg_with(), run, workers=2, episodes=4, env_factory=make_fake_env(n_agents=2), progress=False)
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} if resume else {}
+    with pytest.raises(EpisodeError, match=r"fails the same way on a fresh worker at decision step 3: "
+                                           r"SimulationError: Departure speed"):
+        train(cfg_with(), run, workers=2, episodes=8, resume=resume, progress=False,
+              env_factory=make_fake_env(n_agents=2, fail_always=True, fail_at_step=3))
+    assert run.exists() == resume  # a new run's folder is gone; a resumed one's is as it was, byte for byte
+    assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
 
 
 def test_too_many_worker_failures_stop_the_run_with_a_checkpoint(tmp_path: Path) -> None:

@@ -16,12 +16,13 @@ def test_build_net_then_run_scenario_on_it(tmp_path: Path, caplog: pytest.LogCap
     assert main(["build-net", "--lanes", "2", "--accel-length", "80", "--out", str(out)]) == 0
     assert (out / "merge.net.xml").is_file() and (out / "merge.yaml").is_file()
     assert main(["run-scenario", "--episodes", "1", "--policy", "random", "--save-routes", str(tmp_path / "routes"),
-                 "--set", f"net.file={out / 'merge.net.xml'}", "--set", "scenario.n_hvs=4"]) == 0
-    assert "random   seed 0" in caplog.text
+                 "--net", str(out / "merge.net.xml")]) == 0
+    assert "random   seed 0" in caplog.text and "WARNING" not in caplog.text  # the default fits this net
     routes = (tmp_path / "routes" / "episode_0.rou.xml").read_text()
-    # The default scene: 4 AVs in the stream, 4 HVs beside it, the merging vehicle, and the stream's HVs.
+    # The default scene: 4 AVs in the stream, 3 HVs beside it (16 per km on its 200 m), the merging vehicle, and
+    # the stream's HVs.
     assert routes.count('type="av"') == 4 and routes.count('id="merger"') == 1
-    assert routes.count("<vehicle ") > 4 + 4 + 1 and 'carFollowModel="IDM"' in routes
+    assert routes.count("<vehicle ") > 4 + 3 + 1 and 'carFollowModel="IDM"' in routes
 
 
 def test_bench_prints_ratios(capsys: pytest.CaptureFixture[str]) -> None:

@@ -124,7 +124,7 @@ def test_a_long_call_with_quick_steps_does_not_time_out() -> None:
     pool = WorkerPool(make_fake_env(horizon=40, step_sleep=0.1), workers=2, timeout=2.0)
     try:
         pool.send_call([0, 1], play_episode, [0, 1])
-        assert pool.recv([0, 1], lost=lambda: None) == [40, 40] and pool.restarts == 0
+        assert pool.recv([0, 1], lost=lambda why: None) == [40, 40] and pool.restarts == 0
     finally:
         pool.close()
 
@@ -138,10 +138,10 @@ def test_a_stopped_worker_within_a_call_is_replaced_naming_the_setting(caplog: p
         time.sleep(0.5)
         os.kill(pool.pid(1), signal.SIGSTOP)
         with caplog.at_level(logging.WARNING, logger="cosim.workers"):
-            assert pool.recv([0, 1], lost=lambda: None) == [100, None] and pool.restarts == 1
+            assert pool.recv([0, 1], lost=lambda why: None) == [100, None] and pool.restarts == 1
         assert "(rollout-1: no answer in 2 s (evaluate.step_timeout)); replacing it" in caplog.text
         pool.send_call([1], play_episode, [1])  # the replacement plays the episode again
-        assert pool.recv([1], lost=lambda: None) == [100]
+        assert pool.recv([1], lost=lambda why: None) == [100]
     finally:
         pool.close()
 

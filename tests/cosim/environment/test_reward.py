@@ -32,7 +32,7 @@ UTILITY = np.array([0.5, 0.8, 0.4, 0.9, -1.0])
 
 def observed() -> np.ndarray:
     road = RoadRaster(grid=np.ones((10, 10), dtype=bool), origin=(-1000.0, -1000.0), resolution=200.0)
-    mapper = VelocityMapper(ObservationConfig(), road, n_agents=2)
+    mapper = VelocityMapper(ObservationConfig(speed_scale=15.0), road, n_agents=2)
     return mapper.observed(SCENE, SCENE.rows_of(["av_0", "av_1"]))
 
 

@@ -46,7 +46,9 @@ def scene(turn: float = 0.0, hv_x: float = 20.0) -> Snapshot:
 
 
 def mapper(road: RoadRaster | None = None, n_agents: int = 1, **obs) -> VelocityMapper:
-    return VelocityMapper(ObservationConfig(**obs), road if road is not None else no_road(), n_agents)
+    # speed_scale in m/s, as an env resolves it on its net (cosim.sumo.resolve)
+    return VelocityMapper(ObservationConfig(**{"speed_scale": 15.0, **obs}), road if road is not None else no_road(),
+                          n_agents)
 
 
 def frame(snap: Snapshot, rows: list[int], agent: int = 0, road: RoadRaster | None = None,
@@ -358,7 +360,8 @@ def _in_rect(px: float, py: float, cx: float, cy: float, heading: float, length:
 @pytest.mark.parametrize("seed", range(6))
 def test_renderer_matches_a_per_pixel_reference_on_random_scenes(seed: int) -> None:
     rng = np.random.default_rng(seed)
-    cfg = ObservationConfig(preset="default", width_px=64, length_m=100.0, ego_at=float(rng.uniform(0.3, 0.7)))
+    cfg = ObservationConfig(preset="default", width_px=64, length_m=100.0, ego_at=float(rng.uniform(0.3, 0.7)),
+                            speed_scale=15.0)
     road = rasterize_road([(np.array([[-300.0, 3.0 * k], [300.0, 3.0 * k + rng.uniform(-20, 20)]]), 3.4)
                            for k in range(-2, 3)])
     n = 14

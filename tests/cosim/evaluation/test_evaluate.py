@@ -229,3 +229,52 @@ def test_cli_evaluate_and_compare_report(idle_eval: Path, tmp_path: Path, capsys
         assert f"({name})" in text
     with pytest.raises(CosimError, match="no evaluation"):
         compare([tmp_path / "nothing"], report)
+
+
+class _FailsAtItsFirstAct(Baseline):
+    """A baseline whose first decision raises a config error, as a policy that does not fit the net does."""
+
+    def load(self, env, worker):  # noqa: ANN001, ANN201 - the Policy protocol's signature
+        def act(obs):  # noqa: ANN001, ANN202
+            raise ConfigError("scenario.merger_pos: must be within the ramp edge 'ramp' (0 to 119.3 m)")
+
+        return lambda seed: act
+
+
+@pytest.mark.parametrize("existing", [False, True])
+def test_a_failed_evaluation_leaves_nothing_that_blocks_its_rerun(tmp_path: Path, existing: bool) -> None:
+    out = tmp_path / "eval"
+    if existing:  # a folder of the user's, with a file of theirs
+        out.mkdir()
+        (out / "notes.txt").write_text("mine")
+    with pytest.raises(ConfigError, match="scenario.merger_pos"):
+        evaluate(_cfg("sim.horizon=2"), _FailsAtItsFirstAct("scripted"), out, episodes=2, seed=100, trajectories=1)
+    # As found: no evaluation.json, config.yaml, episodes.csv or SUMO outputs of the failed attempt.
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"] if existing else not out.exists()
+    # The corrected rerun (another policy, another config) into the same folder goes through.
+    summary = evaluate(_cfg(), Baseline("idle"), out, episodes=2, seed=100, trajectories=0, plots=False)
+    assert summary["episodes"] == 2 and summary["policy"] == "idle"
+
+
+def test_an_evaluation_records_what_it_ran_on_and_compare_warns_across_nets(
+        two_lane_net: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    main(["evaluate", "--policy", "idle", "--episodes", "2", "--set", "sim.horizon=8", "--no-plots", "--out",
+          str(tmp_path / "dilemma")])
+    assert main(["evaluate", "--policy", "idle", "--episodes", "2", "--set", "sim.horizon=8", "--no-plots",
+                 "--net", str(two_lane_net), "--out", str(tmp_path / "two_lane")]) == 0
+    summaries = {n: json.loads((tmp_path / n / "summary.json").read_text()) for n in ("dilemma", "two_lane")}
+    two = summaries["two_lane"]["setting"]
+    assert two["net"]["file"] == str(two_lane_net) and len(two["net"]["sha256"]) == 64
+    assert two["overrides"] == ["sim.horizon=8", f"net.file={two_lane_net}", "net.description=null"]
+    assert two["flow_window_s"] == 8.0 and two["detector"]["edge"] == "hw_out"
+    assert summaries["two_lane"]["net_sha256"] != summaries["dilemma"]["net_sha256"]
+    report = (tmp_path / "two_lane" / "report.md").read_text()
+    for needle in ("# Evaluation: idle", "highway: hw_in (2 lanes", "acceleration lane(s) [0] of 'hw_merge'",
+                   "overrides: `--set sim.horizon=8`", "flow window: the first 8 s of each episode",
+                   "| merge success [%] |"):
+        assert needle in report, needle
+    caplog.set_level("WARNING")
+    compare([tmp_path / "dilemma", tmp_path / "two_lane"], tmp_path / "report")
+    assert "different net file content (net_sha256)" in caplog.text
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert "## Setting of dilemma" in text and "## Setting of two_lane" in text
