@@ -2,7 +2,8 @@
 
 Contract: `episodes.csv` holds one row per episode (`cosim.files.read_csv` reads it); `summarize_evaluation`
 and `pooled` pick the rows of the requested seeds and summarise them (`cosim.evaluation.stats.summarize`);
-`trajectories/seed_S.npz` holds the recorded episodes (`save_trajectory` / `load_trajectory`); `summary.json`
+`trajectories/seed_S.npz` holds the recorded episodes (`save_trajectory` / `load_trajectory`), `plots/` their
+videos (`video_files`); `summary.json`
 names what was evaluated (`find_evaluation` reads it: a `CosimError` naming it when it is no JSON object or lacks
 a key a reader needs). `checked_rows` gives an evaluation's rows checked against its summary: a `CosimError`
 naming `episodes.csv` and both counts when the file is missing or holds fewer episodes than the summary counts.
@@ -128,6 +129,12 @@ def config_hash(config: Mapping[str, Any]) -> str:
 
 def trajectory_files(out_dir: Path) -> list[Path]:
     return sorted((out_dir / "trajectories").glob("seed_*.npz"), key=lambda p: int(p.stem.split("_")[1]))
+
+
+def video_files(eval_dir: Path) -> list[Path]:
+    """The episode videos in `eval_dir/plots/` (`cosim evaluate --videos`), by seed."""
+    found = [p for p in (Path(eval_dir) / "plots").glob("video_seed_*.*") if p.suffix in (".mp4", ".gif")]
+    return sorted(found, key=lambda p: int(p.stem.split("_")[2]))
 
 
 def load_trajectory(path: Path) -> dict[str, np.ndarray]:
