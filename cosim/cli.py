@@ -304,12 +304,13 @@ def _replay_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, help=f"the episode's seed (default: evaluate.seed, {EVAL_SEED_START:,}: "
                                                  "the evaluation's first episode)")
     parser.add_argument("--sample", action="store_true", help="sample actions instead of the greedy argmax")
-    parser.add_argument("--out", type=Path, help="folder of the video (default: RUN/replay, or replay/POLICY)")
+    parser.add_argument("--out", type=Path, help="folder of the video (default: RUN/replay, or runs/replay/POLICY)")
     parser.add_argument("--no-video", action="store_true", help="no video file (with --gui: only watch)")
     parser.add_argument("--gui", action="store_true", help="watch it live in sumo-gui (needs a display; "
                                                            "headless: xvfb-run -a cosim replay ...)")
     parser.add_argument("--delay", type=float, default=100.0, metavar="MS",
-                        help="with --gui: pause per 0.1 s simulation step [ms] (default: %(default)s, about real time)")
+                        help="with --gui: sumo-gui's pause after each simulation step [ms] (default: %(default)s, "
+                             "about real time at the default 0.1 s step)")
     parser.add_argument("--screenshot", type=Path, metavar="PNG",
                         help="with --gui: save sumo-gui's view after the episode")
 
@@ -345,7 +346,7 @@ def _replay(args: argparse.Namespace) -> int:
                       cfg.evaluate.seed if args.seed is None else args.seed)
     greedy = cfg.evaluate.greedy and not args.sample
     policy = _trained_policy(args, greedy) if args.policy in ("checkpoint", "sb3") else Baseline(args.policy)
-    out = args.out or (args.run / "replay" if args.run else Path("replay") / policy.name)
+    out = args.out or (args.run / "replay" if args.run else Path("runs") / "replay" / policy.name)
     row, video = replay(cfg, policy, seed, out, video=not args.no_video,
                         gui_delay=args.delay if args.gui else None, screenshot=args.screenshot)
     log.info("%s seed %d: crash %s, merge %s, merging vehicle %.1f m, %d decisions", policy.name, seed,

@@ -101,8 +101,10 @@ def evaluation_report(eval_dir: Path, label: str, figures: Sequence[Path]) -> Pa
     e = find_evaluation(eval_dir, label)
     rows = checked_rows(e)
     conf = e.summary.get("confidence", 0.95)
-    text = _report([e], {label: summarize(rows, conf)}, {label: len(rows)}, {},
-                   {label: [*figures, *video_files(eval_dir)]}, eval_dir)
+    episodes = [p for p in figures if "_seed_" in p.stem]  # the recorded episodes' figures, then their videos
+    text = _report([e], {label: summarize(rows, conf)}, {label: len(rows)},
+                   {p.stem.replace("_", " "): p for p in figures if p not in episodes},
+                   {label: [*episodes, *video_files(eval_dir)]}, eval_dir)
     atomic_write_text(eval_dir / "report.md", text)
     return eval_dir / "report.md"
 

@@ -143,10 +143,11 @@ def distance_histogram(samples: Mapping[str, Sequence[float]], path: Path, bins:
                        marks: Mapping[str, tuple[float, float]] | None = None, caption: str = "") -> Path:
     """Histograms of the merging vehicle's distance per run, overlaid; `marks` (`accel_lane_marks`): name ->
     (low, high) [m], drawn as a shaded span between two lines (one line where low == high)."""
-    fig = Figure(figsize=(7.5, 3.8), layout="constrained")
+    fig = Figure(figsize=(8.5, 3.8), layout="constrained")
     ax = fig.subplots()
     finite = {k: np.asarray(v, dtype=float)[np.isfinite(np.asarray(v, dtype=float))] for k, v in samples.items()}
-    every = np.concatenate([v for v in finite.values()] or [np.zeros(0)])
+    # Bins over the data and the marks: the marks are on the axis anyway, and bars keep one width per figure.
+    every = np.concatenate([*finite.values(), np.ravel(list((marks or {}).values()))])
     edges = np.histogram_bin_edges(every if every.size else np.zeros(1), bins=bins)
     for i, (label, values) in enumerate(finite.items()):
         ax.hist(values, bins=edges, alpha=0.5, color=f"C{i}", label=f"{label} (n={values.size})", density=False)
@@ -154,13 +155,16 @@ def distance_histogram(samples: Mapping[str, Sequence[float]], path: Path, bins:
         for x in sorted({lo, hi}):
             ax.axvline(x, color="k", ls=style, lw=1)
         ax.axvspan(lo, hi, color="k", alpha=0.08, lw=0)
-        label = f"{name} ({lo:.0f} m)" if lo == hi else f"{name} ({lo:.0f}-{hi:.0f} m, by start on the ramp)"
-        ax.plot([], [], color="k", ls=style, lw=1, label=label)
+        ax.plot([], [], color="k", ls=style, lw=1, label=f"{name}: {lo:.0f} m" if lo == hi else
+                f"{name}: {lo:.0f}-{hi:.0f} m")
     ax.yaxis.set_major_locator(MaxNLocator(integer=True))  # episodes come whole
     ax.set_xlabel(xlabel)
     ax.set_ylabel("episodes")
     ax.set_title("How far the merging vehicle got")
-    fig.legend(loc="outside right upper", fontsize=8)
+    spans = any(lo != hi for lo, hi in (marks or {}).values())
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False,
+              title="shaded: from its farthest to its\nnearest start on the ramp" if spans else None,
+              title_fontsize=7, alignment="left")
     add_caption(fig, caption)
     return save(fig, path)
 
@@ -219,7 +223,7 @@ def training_curves(groups: Mapping[str, Sequence[Path]], path: Path, window: in
                 ax.fill_between(x, np.nanmin(stack, axis=0), np.nanmax(stack, axis=0), color=color, alpha=0.18,
                                 lw=0)
             if title.startswith("crash"):
-                below = np.flatnonzero(mean <= CRASH_TARGET)
+                below = np.flatnonzero(mean <= CRASH_TARGET + 1e-9)  # 2.0000000000000004 is 2%
                 if below.size:
                     ax.plot(x[below[0]], mean[below[0]], marker="v", ms=9, color=color, mec="k", zorder=5)
         runs = f"{len(logs)} runs" if len(logs) > 1 else "1 run"
@@ -230,11 +234,12 @@ def training_curves(groups: Mapping[str, Sequence[Path]], path: Path, window: in
         ax.set_ylabel(title)
         if title.startswith("crash"):
             ax.axhline(CRASH_TARGET, color="0.4", ls=":", lw=1)
-    handles += [Patch(color="0.6", alpha=0.4, label="range over the runs (seeds)"),
-                Line2D([], [], ls="none", marker="v", ms=8, color="0.5", mec="k",
-                       label=f"crash rate first <= {CRASH_TARGET:g}% (dotted line)")]
-    fig.legend(handles=handles, loc="outside lower center", ncols=min(3, len(handles)), fontsize=8)
-    fig.suptitle(f"Training: rolling mean over {window} episodes, mean over runs")
+    if any(len(logs) > 1 for logs in data.values()):
+        handles.append(Patch(color="0.6", alpha=0.4, label="range over the runs (seeds)"))
+    handles.append(Line2D([], [], ls="none", marker="v", ms=8, color="0.5", mec="k",
+                          label=f"crash rate first <= {CRASH_TARGET:g}% (dotted line)"))
+    axes[ncols - 1].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)
+    fig.suptitle(f"Training: rolling mean over {window} episode{'s' if window > 1 else ''}, mean over runs")
     add_caption(fig, caption)
     return save(fig, path)
 
@@ -329,9 +334,10 @@ def top_views(traj: Mapping[str, np.ndarray], road: RoadRaster, path: Path, titl
         ax.imshow(img, extent=extent, interpolation="nearest")
         ax.set_title(f"t = {times[k]:.1f} s", fontsize=9)
         ax.set_ylabel("y [m]", fontsize=8)
+        ax.set_xlabel("x [m]", fontsize=8, labelpad=1)  # each view has its own window along x
         ax.tick_params(labelsize=7)
     axes[-1].set_xlabel("x [m] (SUMO network coordinates)", fontsize=8)
-    fig.legend(*class_legend(), loc="outside upper right", fontsize=7, ncols=5, frameon=False)
+    axes[0].legend(*class_legend(), loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
     when = f"merge at {merge_t:.1f} s" if math.isfinite(merge_t) else "no merge: around the episode's end"
     fig.suptitle(f"{title + ': ' if title else ''}top views around the merge ({when})", fontsize=10)
     add_caption(fig, caption)

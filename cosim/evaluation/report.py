@@ -198,15 +198,18 @@ def _rates_vs_phi(path: Path, phi_rows: Mapping[float, list], base_rows: Mapping
     fig = Figure(figsize=(11, 4.4), layout="constrained")
     axes = fig.subplots(1, 2)
     phis = sorted(phi_rows)
-    # Crash by cause often equals the total (every crash an AV's fault): markers and styles keep both visible.
-    styles = [("o", "-", 7), ("s", "--", 5), ("^", ":", 5), ("D", "-.", 4)]
+    # A cause often equals the total (every crash an AV's fault): each series is shifted a little along phi,
+    # with its own marker and line, so that none hides another.
+    styles = [("o", "-"), ("s", "--"), ("^", ":"), ("D", "-.")]
+    dodge = 0.012 * (max(phis) - min(phis) or 1.0)
     for ax, labels in zip(axes, (list(RATES)[:4], ["merge success [%]"]), strict=True):
         for i, label in enumerate(labels):
             stats = [rate(phi_rows[p], RATES[label]) for p in phis]
             mean = np.array([s["mean"] for s in stats])
             err = np.array([[s["mean"] - s["ci_low"] for s in stats], [s["ci_high"] - s["mean"] for s in stats]])
-            marker, ls, size = styles[i]
-            ax.errorbar(phis, mean, yerr=err, marker=marker, ls=ls, ms=size, capsize=3, color=f"C{i}",
+            marker, ls = styles[i]
+            x = np.asarray(phis) + dodge * (i - (len(labels) - 1) / 2)
+            ax.errorbar(x, mean, yerr=err, marker=marker, ls=ls, ms=5, capsize=3, color=f"C{i}",
                         label=label.replace(" [%]", ""))
         for j, (b, rows) in enumerate(base_rows.items()):
             ax.axhline(rate(rows, RATES[labels[0]])["mean"], ls=(0, (4, 2)), lw=1, color=f"C{j + 5}",
@@ -214,7 +217,7 @@ def _rates_vs_phi(path: Path, phi_rows: Mapping[float, list], base_rows: Mapping
         ax.set_xlabel("SVO angle phi [rad]")
         ax.set_ylabel("% of episodes")
         ax.set_ylim(-2, 102)
-        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncols=2, frameon=False)
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncols=2, frameon=False)
     axes[0].set_title("Crashes (total and by cause)")
     axes[1].set_title("Merge success")
     fig.suptitle("Trained AVs over the SVO angle (pooled over seeds), 95% Wilson intervals; dashed: baselines")
@@ -239,8 +242,8 @@ def _flow_vs_phi(path: Path, table: Mapping[str, Mapping], phis: Sequence[float]
         ax.set_xlabel("SVO angle phi [rad]")
         ax.set_ylabel(metric)
         ax.set_title(f"{metric.split(' [')[0]} over the flow window")
-    handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside right upper", fontsize=8, frameon=False)
+    axes[-1].legend(*axes[0].get_legend_handles_labels(), loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8,
+                    frameon=False)
     fig.suptitle("Traffic flow over the SVO angle (SUMO's detectors and tripinfo), 95% intervals")
     plots.add_caption(fig, caption)
     return plots.save(fig, path)

@@ -7,7 +7,7 @@ decisions, through the session's `on_step`; default 0.1 s, so the video plays in
 `write(path)` encodes them: the top view of `merge_area` (`cosim.environment.render.top_view`, the renderer
 of the env and of the evaluation's top views) with AVs, HVs and the merging vehicle in their class's colour
 and crashed vehicles red, each AV numbered, and above it the time, each AV's action and the merging
-vehicle's state (`merger_state`). MP4 (H.264) where an ffmpeg is found (imageio-ffmpeg's, from the `video`
+vehicle's state (`merger_state`). MP4 (H.264) where an ffmpeg is found (imageio-ffmpeg's, from the `replay`
 extra, or one on PATH), else GIF (Pillow, matplotlib's own dependency): the suffix of the path written says
 which. With a session on sumo-gui (`cosim.sumo.session.Gui`), `decide` also writes each AV's action beside
 it there (`SumoSession.label`).
@@ -141,7 +141,7 @@ class EpisodeView:
             writer: animation.AbstractMovieWriter = animation.FFMpegWriter(
                 fps=self.fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p", "-crf", "26"])
         else:
-            log.info("no ffmpeg (pip install -e \".[video]\" brings one): writing %s as a GIF", path.name)
+            log.info("no ffmpeg (pip install -e \".[replay]\" brings one): writing %s as a GIF", path.name)
             writer = animation.PillowWriter(fps=self.fps)
         logging.getLogger("matplotlib.animation").setLevel(logging.WARNING)  # not ffmpeg's command line per video
         with rc_context({"animation.ffmpeg_path": ffmpeg or "ffmpeg"}), writer.saving(renderer.fig, path, DPI):
@@ -152,7 +152,7 @@ class EpisodeView:
 
 
 def find_ffmpeg() -> str | None:
-    """The ffmpeg that MP4s are encoded with: imageio-ffmpeg's (the `video` extra), else one on PATH."""
+    """The ffmpeg that MP4s are encoded with: imageio-ffmpeg's (the `replay` extra), else one on PATH."""
     try:
         import imageio_ffmpeg
     except ImportError:
@@ -199,7 +199,15 @@ class _FrameRenderer:
         self.numbers = [self.ax.text(s.x[r], s.y[r] + s.width[r], s.ids[r].rsplit("_", 1)[-1], color="black",
                                      fontsize=8, fontweight="bold", ha="center", va="bottom", clip_on=True,
                                      path_effects=[withStroke(linewidth=2.5, foreground="white")]) for r in rows]
-        # An AV without an action: before the first decision ("-"), or done (crashed or off the net).
-        actions = "  ".join(f"{a}: {frame.actions.get(a, '-' if s.row_of(a) >= 0 else 'gone')}" for a in self.agents)
+        actions = "  ".join(f"{a}: {self._action(frame, a)}" for a in self.agents)
         self.header.set_text(f"{self.title}{'  ' if self.title else ''}t = {s.time:5.1f} s\n"
                              f"AV actions  {actions}\nmerging vehicle: {frame.merger}")
+
+    @staticmethod
+    def _action(frame: Frame, agent: str) -> str:
+        row = frame.snap.row_of(agent)
+        if row < 0:
+            return "gone"  # off the net (or taken off after a crash)
+        if frame.snap.crashed[row]:
+            return "crashed"
+        return frame.actions.get(agent, "-")  # "-": before the first decision

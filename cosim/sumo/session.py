@@ -15,7 +15,7 @@ imports libsumo or traci.
 With `gui=Gui(...)` the same session drives sumo-gui over TraCI (libsumo's GUI mode is experimental; TraCI and
 libsumo share one API, so every call below is the same, only slower: about 90 steps/s): the window shows the
 merge area (`Gui.view`), vehicles in their class's colour and crashed ones in `Gui.crashed`, and `label(vid,
-text)` writes a line under a vehicle (the replay's AV actions). `on_step`, when set, is called after every
+text)` writes a line above a vehicle (the replay's AV actions). `on_step`, when set, is called after every
 SUMO step of `advance` (a video's frames); `view()` reads the state then without taking the period's
 collisions and arrivals from the next `snapshot`. sumo-gui needs a display (`DISPLAY`; Xvfb where there is
 none).
@@ -45,7 +45,7 @@ _LIVE: dict[int, SumoSession] = {}  # pid -> the live session of that process
 
 
 GUI_SETTINGS = Path(__file__).with_name("gui_settings.xml")  # dark background, `label` texts shown
-LABEL_PARAM = "cosim.label"  # the vehicle parameter sumo-gui shows under each vehicle (GUI_SETTINGS)
+LABEL_PARAM = "cosim.label"  # the vehicle parameter sumo-gui shows above each vehicle (GUI_SETTINGS)
 RGB = tuple[int, int, int]
 
 
@@ -280,7 +280,7 @@ class SumoSession:
 
     # -- sumo-gui -----------------------------------------------------------------------------------
     def label(self, vid: str, text: str) -> None:
-        """With a `Gui`: show `text` beside vehicle `vid` in sumo-gui (a vehicle not on the road is skipped)."""
+        """With a `Gui`: show `text` above vehicle `vid` in sumo-gui (a vehicle not on the road is skipped)."""
         if self.gui is not None and vid in self._static:
             self._sumo.vehicle.setParameter(vid, LABEL_PARAM, text)
 

@@ -229,3 +229,22 @@ def test_cli_evaluate_and_compare_report(idle_eval: Path, tmp_path: Path, capsys
         assert f"({name})" in text
     with pytest.raises(CosimError, match="no evaluation"):
         compare([tmp_path / "nothing"], report)
+
+
+def test_cli_evaluate_videos_beside_the_time_space_diagrams(tmp_path: Path, caplog) -> None:
+    out = tmp_path / "ev"
+    assert main(["evaluate", "--policy", "courteous", "--episodes", "2", "--seed", "100", "--trajectories", "1",
+                 "--videos", "1", "--set", "sim.horizon=3", "--out", str(out)]) == 0
+    plots_dir = out / "plots"
+    assert sorted(p.name for p in plots_dir.glob("video_seed_*")) == ["video_seed_100.mp4"]
+    assert (plots_dir / "timespace_seed_100.png").is_file()
+    report = (out / "report.md").read_text()
+    assert "[video_seed_100 (MP4)](plots/video_seed_100.mp4)" in report
+    assert "![timespace_seed_100](plots/timespace_seed_100.png)" in report and "| crash [%]" in report
+    # `cosim compare` links the evaluation's videos where they are.
+    assert main(["compare", str(out), "--labels", "courteous", "--out", str(tmp_path / "cmp")]) == 0
+    assert "[video_seed_100 (MP4)](../ev/plots/video_seed_100.mp4)" in (tmp_path / "cmp" / "report.md").read_text()
+    caplog.clear()
+    bad = ["evaluate", "--policy", "idle", "--episodes", "1", "--videos", "-1", "--out", str(tmp_path / "x")]
+    assert main(bad) == 2
+    assert caplog.messages == ["--videos: must be >= 0, got -1"]

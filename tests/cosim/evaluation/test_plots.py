@@ -1,14 +1,21 @@
-"""Figures of a real recorded episode: labelled, with a legend and a title, and continuous through junctions."""
+"""Figures a reader takes in at a glance: a title, axis labels with units, legends that cover no data, the net,
+config and policy in a caption; the distance histogram marks the acceleration lane, the bars hold the flow
+metrics, the training curves are one smoothed line per group with a band and the crash target marked; and the
+figures of a real recorded episode are labelled and continuous through junctions."""
 
 from __future__ import annotations
 
+import csv
 from pathlib import Path
 
 import numpy as np
 import pytest
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 
 import cosim
+from cosim.config import load_config
 from cosim.environment.policies import POLICIES
 from cosim.environment.render import COLOURS as TOP_VIEW_COLOURS
 from cosim.environment.velocity_map import rasterize_road
@@ -16,7 +23,8 @@ from cosim.evaluation import plots
 from cosim.sumo.roadnet import load_roadnet
 from cosim.sumo.snapshot import KIND_MERGER
 
-pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
+CAPTION = "net: sumo_net/dilemma/dilemma.net.xml; config: configs/default.yaml; policy: courteous"
+
 
 @pytest.fixture(scope="module")
 def merged_episode() -> dict[str, np.ndarray]:
@@ -47,10 +55,33 @@ def figures(monkeypatch: pytest.MonkeyPatch) -> list[Figure]:
     return drawn
 
 
+def _readable(fig: Figure, caption: str = CAPTION, runs_on_x: bool = False) -> None:
+    """What every figure has: a title, x and y labels (one with a unit; `runs_on_x`: the x axis names runs
+    instead), legends clear of every panel, the caption at its foot."""
+    FigureCanvasAgg(fig).draw()
+    renderer = fig.canvas.get_renderer()
+    panels = [ax for ax in fig.axes if ax.get_visible()]
+    assert fig.get_suptitle() or all(ax.get_title() for ax in panels)
+    for ax in panels:
+        assert ax.get_xlabel() or runs_on_x or ax.get_shared_x_axes().get_siblings(ax) != [ax], ax.get_title()
+        assert ax.get_ylabel(), ax.get_title()
+        assert "[" in ax.get_xlabel() + ax.get_ylabel() or ax.get_ylabel() in ("action", "return per AV and episode")
+    legends = [leg for leg in [*fig.legends, *(ax.get_legend() for ax in panels)] if leg is not None]
+    assert legends or len(panels) > 1  # the bars name their runs under them
+    for leg in legends:
+        box = leg.get_window_extent(renderer)
+        for ax in panels:
+            assert not box.overlaps(ax.get_window_extent(renderer)), f"legend over the panel {ax.get_title()!r}"
+    assert fig.get_supxlabel() == caption
+
+
+@pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 def test_top_views_have_axis_labels_a_legend_and_a_title(merged_episode, figures, tmp_path: Path) -> None:
     lanes = load_roadnet("sumo_net/dilemma/dilemma.net.xml").lane_shapes()
-    plots.top_views(merged_episode, rasterize_road(lanes), tmp_path / "top.png", title="courteous: episode seed 1")
+    plots.top_views(merged_episode, rasterize_road(lanes), tmp_path / "top.png", title="courteous: episode seed 1",
+                    caption=CAPTION)
     (fig,) = figures
+    _readable(fig)
     axes = fig.axes
     assert fig.get_suptitle().startswith("courteous: episode seed 1: top views around the merge (merge at ")
     assert all(ax.get_ylabel() == "y [m]" for ax in axes) and axes[-1].get_xlabel().startswith("x [m]")
@@ -66,9 +97,15 @@ def test_top_views_have_axis_labels_a_legend_and_a_title(merged_episode, figures
         assert x1 - x0 == pytest.approx(220.0, abs=2.0)  # the 2 x 110 m window
 
 
+@pytest.mark.sumo
 def test_time_space_lines_are_continuous_through_the_junction(merged_episode, figures, tmp_path: Path) -> None:
-    plots.time_space(merged_episode, tmp_path / "ts.png")
+    plots.time_space(merged_episode, tmp_path / "ts.png", title="courteous: episode seed 1", caption=CAPTION)
     (fig,) = figures
+    _readable(fig)
+    # Both ends of the acceleration lane are drawn and named.
+    lines = {round(line.get_ydata()[0], 3) for line in fig.axes[0].lines if line.get_linestyle() == "--"}
+    assert lines == {round(float(merged_episode[k]), 3) for k in ("merge_start", "merge_end")}
+    assert [t.get_text() for t in fig.axes[0].texts] == ["acceleration lane starts", "acceleration lane ends"]
     merger = [line for line in fig.axes[0].lines
               if line.get_linewidth() > 2 and line.get_color() == plots.COLORS[KIND_MERGER]]
     (line,) = merger
@@ -77,3 +114,68 @@ def test_time_space_lines_are_continuous_through_the_junction(merged_episode, fi
     assert np.isfinite(s).all() and len(s) == len(t) > 10
     assert np.all(np.diff(s) >= -1e-6) and np.max(np.diff(s)) < 40.0 * np.max(np.diff(t))
     assert merged_episode["kind"].tolist().count(KIND_MERGER) == len(s)
+
+
+def test_bars_hold_the_flow_metrics(figures, tmp_path: Path) -> None:
+    stats = {m: {"mean": 10.0, "ci_low": 8.0, "ci_high": 12.0} for m in plots.BAR_METRICS}
+    plots.bars({"courteous": stats, "scripted": stats}, tmp_path / "bars.png", caption=CAPTION)
+    (fig,) = figures
+    _readable(fig, runs_on_x=True)
+    assert [ax.get_ylabel() for ax in fig.axes] == ["crash [%]", "merge success [%]", "mean distance [m]",
+                                                    "throughput [veh/h]", "time loss [s]"]
+    assert all([t.get_text() for t in ax.get_xticklabels()] == ["courteous", "scripted"] for ax in fig.axes)
+
+
+def test_distance_histogram_marks_the_acceleration_lane(figures, tmp_path: Path) -> None:
+    cfg = load_config("configs/default.yaml")
+    marks = plots.accel_lane_marks(cfg)
+    # dilemma: the merging vehicle starts 0-40 m up the ramp; the acceleration lane's end is 239 m from the ramp's
+    # start (the sweep reports'), its start one merge edge (118.8 m between the junctions) before.
+    (s0, s1), (e0, e1) = marks.values()
+    assert s1 - s0 == e1 - e0 == pytest.approx(40.0) and e1 == pytest.approx(239.0, abs=0.5)
+    assert e1 - s1 == pytest.approx(load_roadnet(cfg.net.file).edge_length("hw_merge"))
+    distances = {"egoistic": [210.0, 212.0, 215.0, 430.0], "altruistic": [420.0, 440.0, 211.0]}
+    plots.distance_histogram(distances, tmp_path / "h.png", marks=marks, caption=CAPTION)
+    (fig,) = figures
+    _readable(fig)
+    (ax,) = fig.axes
+    drawn = sorted(line.get_xdata()[0] for line in ax.lines if len(line.get_xdata()) == 2)
+    assert drawn == pytest.approx(sorted([s0, s1, e0, e1]))
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert labels == ["egoistic (n=4)", "altruistic (n=3)", f"acceleration lane starts: {s0:.0f}-{s1:.0f} m",
+                      f"acceleration lane ends: {e0:.0f}-{e1:.0f} m"]
+    ticks = [t for t in ax.get_yticks() if ax.get_ylim()[0] <= t <= ax.get_ylim()[1]]
+    assert ticks and all(float(t).is_integer() for t in ticks)  # no half episodes
+
+
+def _log(path: Path, crash: np.ndarray) -> Path:
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["episode", "return_mean", "crashed", "merged", "mean_distance"])
+        w.writerows([i + 1, 1.0, c, 0, 100.0] for i, c in enumerate(crash))
+    return path
+
+
+def test_training_curves_one_line_per_group_with_its_band_and_the_crash_target(figures, tmp_path: Path) -> None:
+    # Two angles: one with three seeds whose crash rate falls from 100% to 0% at episodes 300, 400, 500, one
+    # with a single seed that never gets below 50%.
+    fall = {seed: _log(tmp_path / f"a{seed}.csv", (np.arange(600 + 10 * seed) < 300 + 100 * seed).astype(int))
+            for seed in range(3)}
+    stay = _log(tmp_path / "b.csv", np.arange(650) % 2)
+    plots.training_curves({"phi=0.785": list(fall.values()), "phi=0.000": [stay]}, tmp_path / "t.png", window=100,
+                          caption=CAPTION)
+    (fig,) = figures
+    _readable(fig)
+    crash = next(ax for ax in fig.axes if ax.get_ylabel().startswith("crash rate"))
+    curves = [line for line in crash.lines if line.get_linewidth() == 1.6]
+    assert len(curves) == 2  # one smoothed line per group, no raw per-episode lines:
+    assert len(crash.lines) == 4  # besides them only the crash marker and the target's dotted line
+    x, y = (np.asarray(a, float) for a in curves[0].get_data())
+    assert len(x) == 600 - 100 + 1  # up to the shortest seed's episodes
+    assert y[0] == 100.0 and y[-1] == 0.0
+    bands = [c for c in crash.collections if isinstance(c, PolyCollection)]
+    assert len(bands) == 1  # a band for the group with several seeds only
+    # The mean of the three seeds' 100-episode means first reaches 2% where the last seed's reaches 6%
+    # (1/3 of 6%): 94 of its 100 episodes after its fall at 500, i.e. at the window ending at episode 594.
+    (marker,) = [line for line in crash.lines if line.get_marker() == "v"]
+    assert marker.get_xdata()[0] == 594 and marker.get_ydata()[0] == pytest.approx(2.0)
