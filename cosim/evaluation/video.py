@@ -33,6 +33,7 @@ from cosim.environment.episode import MergeZone, merge_status
 from cosim.environment.merge_env import MergeEnv
 from cosim.environment.render import COLOURS, top_view
 from cosim.evaluation.plots import CRASHED_RGB, class_legend
+from cosim.files import atomic_path
 from cosim.sumo.net import Net
 from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
 
@@ -134,7 +135,6 @@ class EpisodeView:
             raise ValueError("no frames: call start() after env.reset and step the episode")
         ffmpeg = find_ffmpeg()
         path = Path(path).with_suffix(".mp4" if ffmpeg else ".gif")
-        path.parent.mkdir(parents=True, exist_ok=True)
         x0, _, x1, _ = merge_area(self.env.net)
         renderer = _FrameRenderer(self.env, (x0, x1), title)
         if ffmpeg:
@@ -144,7 +144,8 @@ class EpisodeView:
             log.info("no ffmpeg (pip install -e \".[replay]\" brings one): writing %s as a GIF", path.name)
             writer = animation.PillowWriter(fps=self.fps)
         logging.getLogger("matplotlib.animation").setLevel(logging.WARNING)  # not ffmpeg's command line per video
-        with rc_context({"animation.ffmpeg_path": ffmpeg or "ffmpeg"}), writer.saving(renderer.fig, path, DPI):
+        with (rc_context({"animation.ffmpeg_path": ffmpeg or "ffmpeg"}), atomic_path(path) as tmp,
+              writer.saving(renderer.fig, tmp, DPI)):  # an interrupted video leaves no half file
             for frame in self.frames:
                 renderer.draw(frame)
                 writer.grab_frame()

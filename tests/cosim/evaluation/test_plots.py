@@ -10,9 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PolyCollection
-from matplotlib.figure import Figure
 
 import cosim
 from cosim.config import load_config
@@ -23,7 +21,7 @@ from cosim.evaluation import plots
 from cosim.sumo.roadnet import load_roadnet
 from cosim.sumo.snapshot import KIND_MERGER
 
-CAPTION = "net: sumo_net/dilemma/dilemma.net.xml; config: configs/default.yaml; policy: courteous"
+CAPTION = plots.caption_text("sumo_net/dilemma/dilemma.net.xml", "configs/default.yaml", "courteous")
 
 
 @pytest.fixture(scope="module")
@@ -48,40 +46,13 @@ def merged_episode() -> dict[str, np.ndarray]:
     pytest.fail("no courteous episode of ten merged")
 
 
-@pytest.fixture
-def figures(monkeypatch: pytest.MonkeyPatch) -> list[Figure]:
-    drawn: list[Figure] = []
-    monkeypatch.setattr(plots, "save", lambda fig, path: drawn.append(fig) or path)
-    return drawn
-
-
-def _readable(fig: Figure, caption: str = CAPTION, runs_on_x: bool = False) -> None:
-    """What every figure has: a title, x and y labels (one with a unit; `runs_on_x`: the x axis names runs
-    instead), legends clear of every panel, the caption at its foot."""
-    FigureCanvasAgg(fig).draw()
-    renderer = fig.canvas.get_renderer()
-    panels = [ax for ax in fig.axes if ax.get_visible()]
-    assert fig.get_suptitle() or all(ax.get_title() for ax in panels)
-    for ax in panels:
-        assert ax.get_xlabel() or runs_on_x or ax.get_shared_x_axes().get_siblings(ax) != [ax], ax.get_title()
-        assert ax.get_ylabel(), ax.get_title()
-        assert "[" in ax.get_xlabel() + ax.get_ylabel() or ax.get_ylabel() in ("action", "return per AV and episode")
-    legends = [leg for leg in [*fig.legends, *(ax.get_legend() for ax in panels)] if leg is not None]
-    assert legends or len(panels) > 1  # the bars name their runs under them
-    for leg in legends:
-        box = leg.get_window_extent(renderer)
-        for ax in panels:
-            assert not box.overlaps(ax.get_window_extent(renderer)), f"legend over the panel {ax.get_title()!r}"
-    assert fig.get_supxlabel() == caption
-
-
 @pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
-def test_top_views_have_axis_labels_a_legend_and_a_title(merged_episode, figures, tmp_path: Path) -> None:
+def test_top_views_have_axis_labels_a_legend_and_a_title(merged_episode, figures, readable, tmp_path: Path) -> None:
     lanes = load_roadnet("sumo_net/dilemma/dilemma.net.xml").lane_shapes()
     plots.top_views(merged_episode, rasterize_road(lanes), tmp_path / "top.png", title="courteous: episode seed 1",
                     caption=CAPTION)
     (fig,) = figures
-    _readable(fig)
+    readable(fig, CAPTION)
     axes = fig.axes
     assert fig.get_suptitle().startswith("courteous: episode seed 1: top views around the merge (merge at ")
     assert all(ax.get_ylabel() == "y [m]" for ax in axes) and axes[-1].get_xlabel().startswith("x [m]")
@@ -98,10 +69,11 @@ def test_top_views_have_axis_labels_a_legend_and_a_title(merged_episode, figures
 
 
 @pytest.mark.sumo
-def test_time_space_lines_are_continuous_through_the_junction(merged_episode, figures, tmp_path: Path) -> None:
+def test_time_space_lines_are_continuous_through_the_junction(merged_episode, figures, readable,
+                                                               tmp_path: Path) -> None:
     plots.time_space(merged_episode, tmp_path / "ts.png", title="courteous: episode seed 1", caption=CAPTION)
     (fig,) = figures
-    _readable(fig)
+    readable(fig, CAPTION)
     # Both ends of the acceleration lane are drawn and named.
     lines = {round(line.get_ydata()[0], 3) for line in fig.axes[0].lines if line.get_linestyle() == "--"}
     assert lines == {round(float(merged_episode[k]), 3) for k in ("merge_start", "merge_end")}
@@ -116,17 +88,17 @@ def test_time_space_lines_are_continuous_through_the_junction(merged_episode, fi
     assert merged_episode["kind"].tolist().count(KIND_MERGER) == len(s)
 
 
-def test_bars_hold_the_flow_metrics(figures, tmp_path: Path) -> None:
+def test_bars_hold_the_flow_metrics(figures, readable, tmp_path: Path) -> None:
     stats = {m: {"mean": 10.0, "ci_low": 8.0, "ci_high": 12.0} for m in plots.BAR_METRICS}
     plots.bars({"courteous": stats, "scripted": stats}, tmp_path / "bars.png", caption=CAPTION)
     (fig,) = figures
-    _readable(fig, runs_on_x=True)
+    readable(fig, CAPTION, runs_on_x=True)
     assert [ax.get_ylabel() for ax in fig.axes] == ["crash [%]", "merge success [%]", "mean distance [m]",
                                                     "throughput [veh/h]", "time loss [s]"]
     assert all([t.get_text() for t in ax.get_xticklabels()] == ["courteous", "scripted"] for ax in fig.axes)
 
 
-def test_distance_histogram_marks_the_acceleration_lane(figures, tmp_path: Path) -> None:
+def test_distance_histogram_marks_the_acceleration_lane(figures, readable, tmp_path: Path) -> None:
     cfg = load_config("configs/default.yaml")
     marks = plots.accel_lane_marks(cfg)
     # dilemma: the merging vehicle starts 0-40 m up the ramp; the acceleration lane's end is 239 m from the ramp's
@@ -137,7 +109,7 @@ def test_distance_histogram_marks_the_acceleration_lane(figures, tmp_path: Path)
     distances = {"egoistic": [210.0, 212.0, 215.0, 430.0], "altruistic": [420.0, 440.0, 211.0]}
     plots.distance_histogram(distances, tmp_path / "h.png", marks=marks, caption=CAPTION)
     (fig,) = figures
-    _readable(fig)
+    readable(fig, CAPTION)
     (ax,) = fig.axes
     drawn = sorted(line.get_xdata()[0] for line in ax.lines if len(line.get_xdata()) == 2)
     assert drawn == pytest.approx(sorted([s0, s1, e0, e1]))
@@ -156,7 +128,8 @@ def _log(path: Path, crash: np.ndarray) -> Path:
     return path
 
 
-def test_training_curves_one_line_per_group_with_its_band_and_the_crash_target(figures, tmp_path: Path) -> None:
+def test_training_curves_one_line_per_group_with_its_band_and_the_crash_target(figures, readable,
+                                                                                tmp_path: Path) -> None:
     # Two angles: one with three seeds whose crash rate falls from 100% to 0% at episodes 300, 400, 500, one
     # with a single seed that never gets below 50%.
     fall = {seed: _log(tmp_path / f"a{seed}.csv", (np.arange(600 + 10 * seed) < 300 + 100 * seed).astype(int))
@@ -165,7 +138,7 @@ def test_training_curves_one_line_per_group_with_its_band_and_the_crash_target(f
     plots.training_curves({"phi=0.785": list(fall.values()), "phi=0.000": [stay]}, tmp_path / "t.png", window=100,
                           caption=CAPTION)
     (fig,) = figures
-    _readable(fig)
+    readable(fig, CAPTION)
     crash = next(ax for ax in fig.axes if ax.get_ylabel().startswith("crash rate"))
     curves = [line for line in crash.lines if line.get_linewidth() == 1.6]
     assert len(curves) == 2  # one smoothed line per group, no raw per-episode lines:

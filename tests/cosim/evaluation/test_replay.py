@@ -94,17 +94,19 @@ def display() -> Iterator[str]:
         pytest.fail("Xvfb not found: sumo-gui needs a display; .ci/run installs it (apt-get install xvfb "
                     "libgl1-mesa-dri libglx-mesa0)")
     read, write = os.pipe()
-    proc = subprocess.Popen([xvfb, "-displayfd", str(write), "-screen", "0", "1600x1000x24", "-nolisten", "tcp"],
-                            pass_fds=(write,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    # -noreset: Xvfb resets when its last client leaves and writes its number to -displayfd again; without a
+    # reader that write fails and the server exits (seen here), so the pipe stays open to the end too.
+    proc = subprocess.Popen([xvfb, "-displayfd", str(write), "-screen", "0", "1600x1000x24", "-nolisten", "tcp",
+                             "-noreset"], pass_fds=(write,), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     os.close(write)
     try:
         number = os.read(read, 16).decode().strip()  # Xvfb writes its display number once it accepts clients
-        os.close(read)
         assert number.isdigit(), f"Xvfb did not start (exit status {proc.poll()})"
         yield f":{number}"
     finally:
         proc.terminate()
         proc.wait(10)
+        os.close(read)
 
 
 def _near(img: np.ndarray, rgb: tuple[int, int, int], tol: int = 12) -> np.ndarray:
