@@ -82,8 +82,9 @@ def evaluation_caption(summaries: Sequence[Mapping[str, Any]]) -> str:
         checkpoint = s.get("checkpoint")
         return str(s.get("policy", "?")) + (f" ({short_path(checkpoint)})" if checkpoint else "")
 
-    return caption_text([short_path(s.get("net") or "?") for s in summaries],
-                        [short_path(s.get("config") or "?") for s in summaries], [policy(s) for s in summaries])
+    # Folders from before the config's file was recorded: their own copy of the resolved config.
+    configs = [short_path(s["config"]) if s.get("config") else "the evaluation folder's config.yaml" for s in summaries]
+    return caption_text([short_path(s.get("net") or "?") for s in summaries], configs, [policy(s) for s in summaries])
 
 
 def short_path(path: str | Path) -> str:
