@@ -253,6 +253,8 @@ def _evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trajectories", type=int, help="episodes whose trajectories are plotted (default: 3)")
     parser.add_argument("--out", type=Path, help="output folder (default: RUN/eval)")
     parser.add_argument("--no-plots", action="store_true", help="skip the figures")
+    parser.add_argument("--videos", type=int, default=0, metavar="K",
+                        help="videos of the first K episodes in OUT/plots, linked from OUT/report.md (default: 0)")
 
 
 def _evaluate(args: argparse.Namespace) -> int:
@@ -269,7 +271,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     episodes = ec.episodes if args.episodes is None else args.episodes
     workers = ec.workers if args.workers is None else args.workers
     trajectories = ec.trajectories if args.trajectories is None else args.trajectories
-    check_counts(episodes, workers, trajectories, prefix="--")
+    check_counts(episodes, workers, trajectories, prefix="--", videos=args.videos)
     seed = check_seed("--seed" if args.seed is not None else "evaluate.seed",
                       ec.seed if args.seed is None else args.seed, episodes)
     greedy = ec.greedy and not args.sample
@@ -279,7 +281,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     policy = _trained_policy(args, greedy) if args.policy in ("checkpoint", "sb3") else Baseline(args.policy)
     summary = evaluate(cfg, policy, out, episodes=episodes, seed=seed,
                        workers=workers, trajectories=trajectories, confidence=ec.confidence, run_dir=args.run,
-                       plots=not args.no_plots, overrides=overrides)
+                       plots=not args.no_plots, videos=args.videos, overrides=overrides)
     log.info("wrote %s", Path(out) / "summary.json")
     label = out.name if args.run is None else args.run.name
     print(format_table({label: summary["metrics"]}, {label: summary["episodes"]}, confidence=ec.confidence))
@@ -341,6 +343,66 @@ def _check_net(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- replay --------------------------------------------------------------------------------------------
+def _replay_arguments(parser: argparse.ArgumentParser) -> None:
+    from cosim.evaluation.runner import BASELINES
+
+    add_config_arguments(parser, default=None)
+    parser.add_argument("--run", type=Path, help="training run folder (its config.yaml and checkpoint.pt)")
+    parser.add_argument("--checkpoint", type=Path, help="checkpoint file (default: RUN/checkpoint.pt)")
+    parser.add_argument("--policy", choices=["checkpoint", "sb3", *BASELINES], default="checkpoint",
+                        help="a baseline instead of a checkpoint, as in `cosim evaluate` (default: checkpoint)")
+    parser.add_argument("--seed", type=int, help=f"the episode's seed (default: evaluate.seed, {EVAL_SEED_START:,}: "
+                                                 "the evaluation's first episode)")
+    parser.add_argument("--sample", action="store_true", help="sample actions instead of the greedy argmax")
+    parser.add_argument("--out", type=Path, help="folder of the video (default: RUN/replay, or runs/replay/POLICY)")
+    parser.add_argument("--no-video", action="store_true", help="no video file (with --gui: only watch)")
+    parser.add_argument("--gui", action="store_true", help="watch it live in sumo-gui (needs a display; "
+                                                           "headless: xvfb-run -a cosim replay ...)")
+    parser.add_argument("--delay", type=float, default=100.0, metavar="MS",
+                        help="with --gui: sumo-gui's pause after each simulation step [ms] (default: %(default)s, "
+                             "about real time at the default 0.1 s step)")
+    parser.add_argument("--screenshot", type=Path, metavar="PNG",
+                        help="with --gui: save sumo-gui's view after the episode")
+
+
+def _replay(args: argparse.Namespace) -> int:
+    import os
+
+    from cosim.config import load_config
+    from cosim.evaluation.replay import replay
+    from cosim.evaluation.runner import Baseline
+
+    if args.run is not None and not (args.run / "config.yaml").is_file():
+        raise CosimError(f"--run {args.run}: not a training run folder (no config.yaml; `cosim train` writes one)")
+    if args.policy in ("checkpoint", "sb3") and args.run is None and args.checkpoint is None:
+        raise ConfigError("cosim replay: give --run RUN (or --checkpoint FILE) for a trained policy, or --policy "
+                          "with a baseline")
+    if args.screenshot is not None and not args.gui:
+        raise ConfigError("--screenshot: sumo-gui's view; it needs --gui")
+    if args.no_video and not args.gui:
+        raise ConfigError("--no-video without --gui: nothing to show; drop --no-video or add --gui")
+    if args.gui and not os.environ.get("DISPLAY"):
+        raise ConfigError("--gui: no display (DISPLAY is unset); sumo-gui needs one: on a machine without a screen "
+                          "run xvfb-run -a cosim replay ... (Debian: apt-get install xvfb)")
+    check_at_least("--delay", args.delay, 0)
+    config = args.config or (args.run / "config.yaml" if args.run else "configs/default.yaml")
+    cfg = load_config(config, config_overrides(args))
+    seed = check_seed("--seed" if args.seed is not None else "evaluate.seed",
+                      cfg.evaluate.seed if args.seed is None else args.seed)
+    greedy = cfg.evaluate.greedy and not args.sample
+    policy = _trained_policy(args, greedy) if args.policy in ("checkpoint", "sb3") else Baseline(args.policy)
+    out = args.out or (args.run / "replay" if args.run else Path("runs") / "replay" / policy.name)
+    row, video = replay(cfg, policy, seed, out, video=not args.no_video,
+                        gui_delay=args.delay if args.gui else None, screenshot=args.screenshot)
+    log.info("%s seed %d: crash %s, merge %s, merging vehicle %.1f m, %d decisions", policy.name, seed,
+             row["crashed"], row["merged"], row["merger_distance"], row["length"])
+    for what, path in (("video", video), ("screenshot", args.screenshot)):
+        if path is not None:
+            log.info("wrote %s %s", what, path)
+    return 0
+
+
 # -- compare -------------------------------------------------------------------------------------------
 def _compare_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("runs", nargs="+", type=Path, help="evaluation folders, or run folders with eval/")
@@ -370,6 +432,7 @@ COMMANDS: dict[str, Command] = {
     "sweep": ("train and evaluate every (SVO angle, seed) within a budget, report against baselines",
               _sweep_arguments, _sweep),
     "evaluate": ("evaluate trained AVs or a baseline policy", _evaluate_arguments, _evaluate),
+    "replay": ("watch one episode: live in sumo-gui and as a video", _replay_arguments, _replay),
     "compare": ("compare evaluated runs: tables, plots, Markdown report", _compare_arguments, _compare),
 }
 

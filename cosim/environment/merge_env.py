@@ -59,7 +59,7 @@ from cosim.sumo.net import load_net
 from cosim.sumo.outputs import SumoOutputs, detector_site, episode_folder, episode_output_args, read_episode_outputs
 from cosim.sumo.resolve import resolve
 from cosim.sumo.scenario import av_id, kind_of, plan_episode, write_episode
-from cosim.sumo.session import SumoSession
+from cosim.sumo.session import Gui, SumoSession
 from cosim.sumo.snapshot import KIND_AV, KIND_MERGER, Snapshot
 from cosim.workers import run_folder
 
@@ -93,7 +93,8 @@ class MergeEnv(ParallelEnv):
     metadata = {"name": "cosim_merge_v0", "render_modes": ["rgb_array"], "is_parallelizable": True,
                 "render_fps": 10}
 
-    def __init__(self, config: Config, render_mode: str | None = None) -> None:
+    def __init__(self, config: Config, render_mode: str | None = None, gui: Gui | None = None) -> None:
+        """`gui`: run sumo-gui over TraCI instead of libsumo, for people to watch (`cosim replay --gui`)."""
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
@@ -121,7 +122,7 @@ class MergeEnv(ParallelEnv):
         self._tmp: Path | None = None  # this env's temporary folder, made at the first reset, removed at close
         self.session = SumoSession(Path(config.net.file), config.sim.step_length, self.road.index_of, kind_of,
                                    config.sim.sumo_args, config.sim.collision_mingap_factor,
-                                   drive_avs=config.sim.av_driver == "env")
+                                   drive_avs=config.sim.av_driver == "env", gui=gui)
         self.detectors = detector_site(self.net, config.sim.detector_offset)
         self.sumo_outputs: dict[int, SumoOutputs] = {}  # episode seed -> its parsed SUMO outputs
         # [m] odometer of every vehicle at the end of the flow window (flush_outputs), to check SUMO's against

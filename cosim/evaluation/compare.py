@@ -6,9 +6,11 @@ Contract: `compare(dirs, out_dir, labels)` takes evaluation folders (written by 
 merging vehicle's distance, overlaid), `training_curves.png` (when a run folder has the trainer's
 `episodes.csv`), per run `LABEL/` with the time-space diagrams, guide-AV speed profiles and top views of
 its recorded episodes, `summary.json` / `summary.csv` (all runs' metrics) and `report.md` (the table, what
-the runs ran on: net, scenario, overrides, flow window and detector, once where they share it, and the
-figures). Runs on different nets (by content) or episodes are compared with a warning. Each run is summarised
-from its `episodes.csv` over the seeds its `summary.json` names, as `cosim evaluate` did
+the runs ran on: net, scenario, overrides, flow window and detector, once where they share it, the figures,
+and links to the videos in each evaluation folder, `cosim evaluate --videos`). Runs on different nets (by
+content) or episodes are compared with a warning. `evaluation_report(eval_dir, label, figures)` writes the same
+report for one evaluation into its own folder (`cosim evaluate`). Each run is summarised from its
+`episodes.csv` over the seeds its `summary.json` names, as `cosim evaluate` did
 (`cosim.evaluation.store.checked_rows`): rows of other seeds in the file are left out; each run's own figures
 are `cosim.evaluation.plots.plot_evaluation`'s, as `cosim evaluate` draws them. Before anything is written, a
 folder without an evaluation, with a summary.json that is corrupt or lacks a key, or whose episodes.csv is
@@ -20,16 +22,18 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from tqdm import tqdm
 
+from cosim.config import load_config
 from cosim.errors import CosimError
 from cosim.evaluation import plots
 from cosim.evaluation.stats import SUMMARY_METRICS, format_table, summarize
-from cosim.evaluation.store import Evaluation, checked_rows, find_evaluation
+from cosim.evaluation.store import Evaluation, checked_rows, find_evaluation, video_files
 from cosim.files import atomic_write_text, column, write_csv
 from cosim.sumo.setting import setting_lines
 
@@ -54,15 +58,20 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
     out_dir.mkdir(parents=True, exist_ok=True)
     episodes = {e.label: len(rows[e.label]) for e in evals}
     merger = {label: column(r, "merger_distance") for label, r in rows.items()}
-    figures = {"bars": plots.bars(metrics, out_dir / "bars.png"),
-               "merger distance": plots.distance_histogram(merger, out_dir / "merger_distance.png")}
-    logs = {e.label: e.run_dir / "episodes.csv" for e in evals if e.run_dir is not None}
-    curves = plots.training_curves(logs, out_dir / "training_curves.png") if logs else None
+    caption = plots.evaluation_caption([e.summary for e in evals])
+    # The acceleration lane's marks where every run has the same (net, ramp start positions).
+    marks = [plots.accel_lane_marks(load_config(e.eval_dir / "config.yaml")) for e in evals]
+    figures = {"bars": plots.bars(metrics, out_dir / "bars.png", caption=caption),
+               "merger distance": plots.distance_histogram(merger, out_dir / "merger_distance.png",
+                                                           marks=marks[0] if marks.count(marks[0]) == len(marks)
+                                                           else None, caption=caption)}
+    logs = {e.label: [e.run_dir / "episodes.csv"] for e in evals if e.run_dir is not None}
+    curves = plots.training_curves(logs, out_dir / "training_curves.png", caption=caption) if logs else None
     if curves is not None:
         figures["training curves"] = curves
     per_run: dict[str, list[Path]] = {}
     for e in tqdm(evals, desc="plots", unit="run", leave=False, disable=None):
-        per_run[e.label] = plots.plot_evaluation(e.eval_dir, out_dir / e.label, e.label)
+        per_run[e.label] = [*plots.plot_evaluation(e.eval_dir, out_dir / e.label, e.label), *video_files(e.eval_dir)]
     result = {e.label: {**e.summary, "episodes": episodes[e.label], "metrics": metrics[e.label],
                         "eval_dir": str(e.eval_dir)} for e in evals}
     atomic_write_text(out_dir / "summary.json", json.dumps(result, indent=2) + "\n")
@@ -71,6 +80,8 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
                                                      mismatches))
     return result
 
+
+VIDEO = (".mp4", ".gif")
 
 # What makes two evaluations comparable, as summary.json records it: the same episodes of the same scenario.
 COMPARABLE = {"net": "net", "net_sha256": "net file content (net_sha256)", "first_seed": "first evaluation seed",
@@ -87,6 +98,19 @@ def incompatibilities(evals: Sequence[Evaluation]) -> list[str]:
             shown = {k: (v[:12] if key.endswith("sha256") and isinstance(v, str) else v) for k, v in values.items()}
             lines.append(f"different {what}: " + ", ".join(f"{k}: {v}" for k, v in shown.items()))
     return lines
+
+
+def evaluation_report(eval_dir: Path, label: str, figures: Sequence[Path]) -> Path:
+    """`eval_dir/report.md` of one evaluation (`cosim evaluate`): its table, `figures` and its videos."""
+    e = find_evaluation(eval_dir, label)
+    rows = checked_rows(e)
+    conf = e.summary.get("confidence", 0.95)
+    episodes = [p for p in figures if "_seed_" in p.stem]  # the recorded episodes' figures, then their videos
+    text = _report([e], {label: summarize(rows, conf)}, {label: len(rows)},
+                   {p.stem.replace("_", " "): p for p in figures if p not in episodes},
+                   {label: [*episodes, *video_files(eval_dir)]}, eval_dir)
+    atomic_write_text(eval_dir / "report.md", text)
+    return eval_dir / "report.md"
 
 
 def _summary_rows(metrics: dict[str, dict[str, dict[str, float]]]) -> list[dict[str, Any]]:
@@ -119,5 +143,7 @@ def _report(evals: Sequence[Evaluation], metrics: dict, episodes: dict[str, int]
     for label, paths in per_run.items():
         if paths:
             lines += [f"## {label}: recorded episodes", ""]
-            lines += [f"![{p.stem}]({p.relative_to(out_dir)})" for p in paths] + [""]
+            # Videos stay in their evaluation folder: linked (Markdown shows no video inline), wherever that is.
+            lines += [f"[{p.stem} ({p.suffix[1:].upper()})]({os.path.relpath(p, out_dir)})" if p.suffix in VIDEO
+                      else f"![{p.stem}]({p.relative_to(out_dir)})" for p in paths] + [""]
     return "\n".join(lines)

@@ -1,12 +1,16 @@
 """Figures of evaluations and training runs, as PNG files (matplotlib's Agg canvas, no pyplot state).
 
 Contract: every function takes plain data (summaries, per-episode columns, a trajectory dict as written by
-`cosim.environment.tracker.EpisodeTracker.trajectory`, a training log CSV) and a path, writes one PNG there and
-returns the path (or None when there is nothing to draw, e.g. a training log without known columns).
-- `bars`: crash %, merge %, mean distance with 95% intervals, runs side by side (the paper's bar plot).
-- `distance_histogram`: the merging vehicle's distance travelled, overlaid per run.
-- `training_curves`: return, crash rate, merge rate, distance over training episodes (rolling means),
-  for the columns the log has (the trainer's `episodes.csv`: return_mean, crashed, merged, mean_distance).
+`cosim.environment.tracker.EpisodeTracker.trajectory`, training log CSVs) and a path, writes one PNG there and
+returns the path (or None when there is nothing to draw, e.g. training logs without known columns). Every
+figure has a title, axis labels with units, legends outside the axes (they cover no data) and, given
+`caption` (`caption_text`: the net, config and policy its data came from), that line at its foot.
+- `bars`: crash %, merge %, mean distance, throughput and time loss with 95% intervals, runs side by side.
+- `distance_histogram`: the merging vehicle's distance travelled, overlaid per run, with the acceleration
+  lane's start and end marked (`accel_lane_marks`: where a merging vehicle reaches them, by its start).
+- `training_curves`: return, crash rate, merge rate, distance over training episodes: per group (an SVO
+  angle, or a run) the mean over its runs (seeds) of each run's rolling mean, with a band from the lowest to
+  the highest run, and a marker where the group's crash rate first falls to `CRASH_TARGET` or below.
 - `time_space`: time-space diagram of the merge area, and the guide AV's speed profile and actions.
 - `top_views`: a few top-view snapshots around the merge.
 - `plot_evaluation`: one evaluation folder's figures (`cosim evaluate` and `cosim compare` draw through it).
@@ -14,22 +18,29 @@ returns the path (or None when there is nothing to draw, e.g. a training log wit
 
 from __future__ import annotations
 
+import json
 import math
+import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from matplotlib.patches import Rectangle
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch, Rectangle
+from matplotlib.ticker import MaxNLocator
 
-from cosim.config import load_config
+from cosim.config import Config, load_config
 from cosim.environment.control import Action
 from cosim.environment.render import COLOURS as TOP_VIEW_COLOURS
 from cosim.environment.render import top_view
 from cosim.environment.velocity_map import RoadRaster, rasterize_road
 from cosim.evaluation.store import load_trajectory, trajectory_files
 from cosim.files import column, read_csv
+from cosim.sumo.net import load_net
+from cosim.sumo.resolve import resolve
 from cosim.sumo.roadnet import load_roadnet
 from cosim.sumo.snapshot import KIND_HV, KIND_MERGER
 
@@ -38,14 +49,15 @@ CRASHED_RGB = (230, 30, 30)
 # One palette for every figure: the renderer's class colours.
 COLORS = {kind: tuple(c / 255 for c in rgb) for kind, rgb in TOP_VIEW_COLOURS.items()}
 GUIDE_COLOR = tuple(c / 255 for c in GUIDE_RGB)
-BAR_METRICS = ("crash [%]", "merge success [%]", "mean distance [m]")
-# Training-log columns, first match wins: what to plot -> candidate column names.
-TRAINING_COLUMNS: dict[str, tuple[str, ...]] = {
-    "return": ("return_mean", "return", "episode_return", "mean_return"),
-    "crash rate": ("crashed", "crash", "crash_rate"),
-    "merge rate": ("merged", "merge", "merge_rate"),
-    "mean distance [m]": ("mean_distance", "distance"),
+BAR_METRICS = ("crash [%]", "merge success [%]", "mean distance [m]", "throughput [veh/h]", "time loss [s]")
+# Training-log columns, first match wins: panel (y label with unit) -> (scale, candidate column names).
+TRAINING_COLUMNS: dict[str, tuple[float, tuple[str, ...]]] = {
+    "return per AV and episode": (1.0, ("return_mean", "return", "episode_return", "mean_return")),
+    "crash rate [% of episodes]": (100.0, ("crashed", "crash", "crash_rate")),
+    "merge rate [% of episodes]": (100.0, ("merged", "merge", "merge_rate")),
+    "mean distance [m]": (1.0, ("mean_distance", "distance")),
 }
+CRASH_TARGET = 2.0  # [%] the crash rate a trained policy should get below (training curves mark it)
 
 
 def save(fig: Figure, path: Path) -> Path:
@@ -55,10 +67,48 @@ def save(fig: Figure, path: Path) -> Path:
     return path
 
 
+# -- captions ------------------------------------------------------------------------------------------
+def caption_text(net: str | Sequence[str], config: str | Sequence[str], policy: str | Sequence[str]) -> str:
+    """The caption line of a figure: the net, config and policy (each a value, or one per run: repeated
+    values are named once) that its data came from."""
+    def joined(value: str | Sequence[str]) -> str:
+        return ", ".join(dict.fromkeys([value] if isinstance(value, str) else value))
+
+    return f"net: {joined(net)}; config: {joined(config)}; policy: {joined(policy)}"
+
+
+def evaluation_caption(summaries: Sequence[Mapping[str, Any]]) -> str:
+    """`caption_text` of evaluations, from their summary.json (or evaluation.json) records."""
+    def policy(s: Mapping[str, Any]) -> str:
+        checkpoint = s.get("checkpoint")
+        return str(s.get("policy", "?")) + (f" ({short_path(checkpoint)})" if checkpoint else "")
+
+    # Folders from before the config's file was recorded: their own copy of the resolved config.
+    configs = [short_path(s["config"]) if s.get("config") else "the evaluation folder's config.yaml" for s in summaries]
+    return caption_text([short_path(s.get("net") or "?") for s in summaries], configs, [policy(s) for s in summaries])
+
+
+def short_path(path: str | Path) -> str:
+    """A path as a reader knows it: relative to the working directory where it is inside it."""
+    p = Path(path)
+    try:
+        return str(p.resolve().relative_to(Path.cwd()))
+    except ValueError:
+        return str(p)
+
+
+def add_caption(fig: Figure, text: str) -> None:
+    """`text` (`caption_text`) in small print at the foot of `fig`, wrapped to its width."""
+    if text:
+        width = int(fig.get_figwidth() * 17)  # characters of 7-point text across the figure
+        fig.supxlabel("\n".join(textwrap.wrap(text, width)), x=0.01, ha="left", fontsize=7, color="0.3")
+
+
 def bars(summaries: Mapping[str, Mapping[str, Mapping[str, float]]], path: Path,
-         metrics: Sequence[str] = BAR_METRICS) -> Path:
-    """One panel per metric, one bar per run, error bars = the confidence interval."""
-    fig = Figure(figsize=(3.2 * len(metrics), 3.4), layout="constrained")
+         metrics: Sequence[str] = BAR_METRICS, caption: str = "") -> Path:
+    """One panel per metric (safety, merging, distance and the flow metrics), one bar per run, error bars =
+    the confidence interval; the runs are named under the bars."""
+    fig = Figure(figsize=(2.6 * len(metrics), 3.6), layout="constrained")
     axes = fig.subplots(1, len(metrics), squeeze=False)[0]
     labels = list(summaries)
     colors = [f"C{i}" for i in range(len(labels))]
@@ -70,24 +120,61 @@ def bars(summaries: Mapping[str, Mapping[str, Mapping[str, float]]], path: Path,
         err = np.nan_to_num(np.vstack([means - low, high - means]), nan=0.0)
         ax.bar(range(len(labels)), np.nan_to_num(means), yerr=err, color=colors, capsize=4)
         ax.set_xticks(range(len(labels)), labels, rotation=20, ha="right")
-        ax.set_title(metric)
+        ax.set_title(metric.split(" [")[0])
+        ax.set_ylabel(metric)
         if "%" in metric:
             ax.set_ylim(0, 105)
+    fig.suptitle("Evaluation: mean per episode with its 95% interval")
+    add_caption(fig, caption)
     return save(fig, path)
 
 
+def accel_lane_marks(cfg: Config) -> dict[str, tuple[float, float]]:
+    """[m] where a merging vehicle's odometer reads at the acceleration lane's start and at its end: spans, since
+    its start on the ramp is drawn per episode (`scenario.merger_time` at its speed, `merger_distance` or
+    `merger_pos`, resolved on the net and capped at the ramp's start)."""
+    net = load_net(cfg.net.file, cfg.net.description)
+    sc = resolve(cfg, net).config.scenario
+    ramp = net.chainage.merge_start - net.ramp_offsets[net.desc.ramp[0]]  # [m] the ramp's start to the lane's
+    if sc.merger_pos is not None:
+        lo, hi = ramp - sc.merger_pos[1], ramp - sc.merger_pos[0]
+    elif sc.merger_distance is not None:
+        lo, hi = sc.merger_distance
+    else:
+        lo, hi = sc.merger_time[0] * sc.merger_speed[0], sc.merger_time[1] * sc.merger_speed[1]
+    lo, hi = min(lo, ramp), min(hi, ramp)
+    length = net.chainage.merge_end - net.chainage.merge_start
+    return {"acceleration lane starts": (lo, hi), "acceleration lane ends": (lo + length, hi + length)}
+
+
 def distance_histogram(samples: Mapping[str, Sequence[float]], path: Path, bins: int = 30,
-                       xlabel: str = "distance travelled by the merging vehicle [m]") -> Path:
-    fig = Figure(figsize=(6, 3.6), layout="constrained")
+                       xlabel: str = "distance travelled by the merging vehicle [m]",
+                       marks: Mapping[str, tuple[float, float]] | None = None, caption: str = "") -> Path:
+    """Histograms of the merging vehicle's distance per run, overlaid; `marks` (`accel_lane_marks`): name ->
+    (low, high) [m], drawn as a shaded span between two lines (one line where low == high)."""
+    fig = Figure(figsize=(8.5, 3.8), layout="constrained")
     ax = fig.subplots()
     finite = {k: np.asarray(v, dtype=float)[np.isfinite(np.asarray(v, dtype=float))] for k, v in samples.items()}
-    every = np.concatenate([v for v in finite.values()] or [np.zeros(0)])
+    # Bins over the data and the marks: the marks are on the axis anyway, and bars keep one width per figure.
+    every = np.concatenate([*finite.values(), np.ravel(list((marks or {}).values()))])
     edges = np.histogram_bin_edges(every if every.size else np.zeros(1), bins=bins)
     for i, (label, values) in enumerate(finite.items()):
         ax.hist(values, bins=edges, alpha=0.5, color=f"C{i}", label=f"{label} (n={values.size})", density=False)
+    for (name, (lo, hi)), style in zip((marks or {}).items(), ("--", ":", "-."), strict=False):
+        for x in sorted({lo, hi}):
+            ax.axvline(x, color="k", ls=style, lw=1)
+        ax.axvspan(lo, hi, color="k", alpha=0.08, lw=0)
+        ax.plot([], [], color="k", ls=style, lw=1, label=f"{name}: {lo:.0f} m" if lo == hi else
+                f"{name}: {lo:.0f}-{hi:.0f} m")
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))  # episodes come whole
     ax.set_xlabel(xlabel)
     ax.set_ylabel("episodes")
-    ax.legend()
+    ax.set_title("How far the merging vehicle got")
+    spans = any(lo != hi for lo, hi in (marks or {}).values())
+    ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False,
+              title="shaded: from its farthest to its\nnearest start on the ramp" if spans else None,
+              title_fontsize=7, alignment="left")
+    add_caption(fig, caption)
     return save(fig, path)
 
 
@@ -108,33 +195,61 @@ def _rolling(y: np.ndarray, window: int) -> np.ndarray:
         return sums / counts
 
 
-def training_curves(logs: Mapping[str, Path], path: Path, window: int = 100) -> Path | None:
-    """Rolling means of the known columns of each run's training log; None if no log has any."""
-    data = {label: read_training_log(p) for label, p in logs.items() if p.is_file()}
-    panels = [(title, names) for title, names in TRAINING_COLUMNS.items()
-              if any(n in cols for cols in data.values() for n in names)]
+def training_curves(groups: Mapping[str, Sequence[Path]], path: Path, window: int = 100,
+                    caption: str = "") -> Path | None:
+    """Per group (label -> the training logs of its runs, e.g. an SVO angle's seeds) the mean over its runs of
+    each run's rolling mean over `window` episodes (shorter for short logs), up to the shortest run's length,
+    with a band from the lowest to the highest run; a marker where the group's crash rate first falls to
+    `CRASH_TARGET` or below. None if no log has a known column."""
+    data = {label: [read_training_log(p) for p in paths if p.is_file()] for label, paths in groups.items()}
+    data = {label: logs for label, logs in data.items() if logs}
+    panels = [(title, scale, names) for title, (scale, names) in TRAINING_COLUMNS.items()
+              if any(n in cols for logs in data.values() for cols in logs for n in names)]
     if not panels:
         return None
     ncols = min(2, len(panels))
     nrows = math.ceil(len(panels) / ncols)
-    fig = Figure(figsize=(5 * ncols, 3.2 * nrows), layout="constrained")
+    fig = Figure(figsize=(5.5 * ncols, 3.2 * nrows + 0.6), layout="constrained")
     axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
     for ax in axes[len(panels):]:
         ax.set_visible(False)
-    for ax, (title, names) in zip(axes, panels, strict=False):
-        for i, (label, cols) in enumerate(data.items()):
-            name = next((n for n in names if n in cols), None)
-            if name is None:
+    smallest = min(len(next(iter(cols.values()))) for logs in data.values() for cols in logs)
+    window = min(window, max(1, smallest // 5))  # a short log gets a short window, so its curve is more than a point
+    handles = []
+    for i, (label, logs) in enumerate(data.items()):
+        color = f"C{i % 10}"
+        for ax, (title, scale, names) in zip(axes, panels, strict=False):
+            curves = [scale * _rolling(cols[name], window) for cols in logs
+                      if (name := next((n for n in names if n in cols), None)) is not None]
+            if not curves:
                 continue
-            y = cols[name]
-            x = cols.get("episode", np.arange(y.size, dtype=float))
-            ax.plot(x, y, color=f"C{i}", alpha=0.2, lw=0.6)
-            # A short log gets a short window, so its curve is more than a point.
-            smooth = _rolling(y, min(window, max(1, y.size // 5)))
-            ax.plot(x[len(x) - smooth.size:], smooth, color=f"C{i}", label=label)
-        ax.set_title(f"{title} (rolling mean)")
-        ax.set_xlabel("episode")
-    axes[0].legend()
+            n = min(c.size for c in curves)
+            stack = np.stack([c[:n] for c in curves])  # (runs, n)
+            x = np.arange(n) + window  # the episode that closes each window
+            mean = np.nanmean(stack, axis=0)
+            ax.plot(x, mean, color=color, lw=1.6)
+            if len(curves) > 1:
+                ax.fill_between(x, np.nanmin(stack, axis=0), np.nanmax(stack, axis=0), color=color, alpha=0.18,
+                                lw=0)
+            if title.startswith("crash"):
+                below = np.flatnonzero(mean <= CRASH_TARGET + 1e-9)  # 2.0000000000000004 is 2%
+                if below.size:
+                    ax.plot(x[below[0]], mean[below[0]], marker="v", ms=9, color=color, mec="k", zorder=5)
+        runs = f"{len(logs)} runs" if len(logs) > 1 else "1 run"
+        handles.append(Line2D([], [], color=color, lw=1.6, label=f"{label} ({runs})"))
+    for ax, (title, _, _) in zip(axes, panels, strict=False):
+        ax.set_title(title.split(" [")[0])
+        ax.set_xlabel("training episode")
+        ax.set_ylabel(title)
+        if title.startswith("crash"):
+            ax.axhline(CRASH_TARGET, color="0.4", ls=":", lw=1)
+    if any(len(logs) > 1 for logs in data.values()):
+        handles.append(Patch(color="0.6", alpha=0.4, label="range over the runs (seeds)"))
+    handles.append(Line2D([], [], ls="none", marker="v", ms=8, color="0.5", mec="k",
+                          label=f"crash rate first <= {CRASH_TARGET:g}% (dotted line)"))
+    axes[ncols - 1].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)
+    fig.suptitle(f"Training: rolling mean over {window} episode{'s' if window > 1 else ''}, mean over runs")
+    add_caption(fig, caption)
     return save(fig, path)
 
 
@@ -151,7 +266,7 @@ def _vehicle_paths(traj: Mapping[str, np.ndarray]) -> list[tuple[str, int, np.nd
 
 
 def time_space(traj: Mapping[str, np.ndarray], path: Path, title: str = "", upstream: float = 150.0,
-               downstream: float = 250.0) -> Path:
+               downstream: float = 250.0, caption: str = "") -> Path:
     """Top: chainage over time of every vehicle around the merge; bottom: the guide AV's speed and actions."""
     guide = str(traj["guide"])
     merge_t = float(traj["merge_time"])
@@ -165,36 +280,45 @@ def time_space(traj: Mapping[str, np.ndarray], path: Path, title: str = "", upst
         ax.plot(t, s, color=color, lw=width, zorder=3 if is_guide or kind == KIND_MERGER else 2)
         if is_guide or kind == KIND_MERGER:
             ax_v.plot(t, v, color=color, lw=1.8, label="guide AV " + vid if is_guide else "merging vehicle")
-    for y in (m0, m1):
+    for y, name in ((m0, "acceleration lane starts"), (m1, "acceleration lane ends")):
         ax.axhline(y, color="k", ls="--", lw=0.8)
-    ax.text(float(traj["time"][0]), m0, " acceleration lane", va="bottom", fontsize=8)
+        ax.annotate(name, (1.0, y), xycoords=("axes fraction", "data"), xytext=(4, 0), textcoords="offset points",
+                    va="center", fontsize=8)
     if math.isfinite(merge_t):
         for a in (ax, ax_v, ax_a):
             a.axvline(merge_t, color="grey", ls=":", lw=1)
     ax.set_ylim(m0 - upstream, m1 + downstream)
     ax.set_ylabel("position along the highway [m]")
-    ax.legend(*_class_legend(), loc="upper left", fontsize=8)
-    ax.set_title(title or "time-space diagram of the merge area")
+    ax.legend(*class_legend(), loc="upper left", bbox_to_anchor=(1.0, 0.9), fontsize=8, frameon=False)
+    ax.set_title("Time-space diagram of the merge area: position of every vehicle over time")
     ax_v.set_ylabel("speed [m/s]")
+    ax_v.set_title("speeds of the guide AV and the merging vehicle", fontsize=9)
     if ax_v.lines:
-        ax_v.legend(fontsize=8)
+        ax_v.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8, frameon=False)
     actions = np.asarray(traj["guide_actions"])
     times = np.asarray(traj["time"])
     if actions.size:
         ax_a.step(times[: actions.size], actions, where="post", color=GUIDE_COLOR)
     ax_a.set_yticks([int(a) for a in Action], [a.name.lower().replace("_", " ") for a in Action], fontsize=7)
     ax_a.set_ylim(-0.5, len(Action) - 0.5)
-    ax_a.set_xlabel("time [s]")
+    ax_a.set_ylabel("action")
+    ax_a.set_title("the guide AV's actions", fontsize=9)
+    ax_a.set_xlabel("time [s] (dotted: the merge)" if math.isfinite(merge_t) else "time [s]")
+    if title:
+        fig.suptitle(title)
+    add_caption(fig, caption)
     return save(fig, path)
 
 
-def _class_legend() -> tuple[list[Rectangle], list[str]]:
-    colors = [np.asarray(c) / 255 for c in (*TOP_VIEW_COLOURS.values(), GUIDE_RGB, CRASHED_RGB)]
-    return [Rectangle((0, 0), 1, 1, color=c) for c in colors], ["AV", "HV", "merging vehicle", "guide AV", "crashed"]
+def class_legend(guide: bool = True) -> tuple[list[Rectangle], list[str]]:
+    """Legend handles and labels of the top views' colours (the guide AV's only where it is drawn)."""
+    shown = [*zip(TOP_VIEW_COLOURS.values(), ["AV", "HV", "merging vehicle"], strict=True),
+             *([(GUIDE_RGB, "guide AV")] if guide else []), (CRASHED_RGB, "crashed")]
+    return [Rectangle((0, 0), 1, 1, color=np.asarray(c) / 255) for c, _ in shown], [label for _, label in shown]
 
 
 def top_views(traj: Mapping[str, np.ndarray], road: RoadRaster, path: Path, title: str = "",
-              offsets: Sequence[float] = (-3.0, 0.0, 3.0), half_window: float = 110.0) -> Path:
+              offsets: Sequence[float] = (-3.0, 0.0, 3.0), half_window: float = 110.0, caption: str = "") -> Path:
     """Top views at the merge time plus `offsets` [s] (episode end when there was no merge), centred on the
     merging vehicle (or its last place), vehicles drawn to scale and coloured by class, the guide AV orange,
     crashed vehicles red; drawn by the env's renderer (`cosim.environment.render.top_view`)."""
@@ -219,29 +343,34 @@ def top_views(traj: Mapping[str, np.ndarray], road: RoadRaster, path: Path, titl
         ax.imshow(img, extent=extent, interpolation="nearest")
         ax.set_title(f"t = {times[k]:.1f} s", fontsize=9)
         ax.set_ylabel("y [m]", fontsize=8)
+        ax.set_xlabel("x [m]", fontsize=8, labelpad=1)  # each view has its own window along x
         ax.tick_params(labelsize=7)
     axes[-1].set_xlabel("x [m] (SUMO network coordinates)", fontsize=8)
-    axes[0].legend(*_class_legend(), loc="upper left", fontsize=7, ncols=5)
+    axes[0].legend(*class_legend(), loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7, frameon=False)
     when = f"merge at {merge_t:.1f} s" if math.isfinite(merge_t) else "no merge: around the episode's end"
     fig.suptitle(f"{title + ': ' if title else ''}top views around the merge ({when})", fontsize=10)
+    add_caption(fig, caption)
     return save(fig, path)
 
 
 def plot_evaluation(eval_dir: Path, plots_dir: Path, label: str,
                     rows: Sequence[Mapping[str, str]] | None = None) -> list[Path]:
     """One evaluation's figures: the merger distance histogram over `rows` (none without them), and per
-    recorded episode a time-space diagram with the guide AV's speed profile and top views around the merge."""
-    out = [distance_histogram({label: column(rows, "merger_distance")},
-                              plots_dir / "merger_distance.png")] if rows is not None else []
+    recorded episode a time-space diagram with the guide AV's speed profile and top views around the merge;
+    each captioned with the evaluation's net, config and policy (its evaluation.json)."""
+    cfg = load_config(eval_dir / "config.yaml")
+    record = eval_dir / "evaluation.json"
+    caption = evaluation_caption([json.loads(record.read_text(encoding="utf-8")) if record.is_file() else {}])
+    out = [distance_histogram({label: column(rows, "merger_distance")}, plots_dir / "merger_distance.png",
+                              marks=accel_lane_marks(cfg), caption=caption)] if rows is not None else []
     files = trajectory_files(eval_dir)
     if files:
-        cfg = load_config(eval_dir / "config.yaml")
         road = rasterize_road(load_roadnet(cfg.net.file).lane_shapes())
         for f in files:
             traj = load_trajectory(f)
             seed = f.stem.split("_")[1]
             out.append(time_space(traj, plots_dir / f"timespace_seed_{seed}.png",
-                                  title=f"{label}: episode seed {seed}, guide AV {traj['guide']}"))
+                                  title=f"{label}: episode seed {seed}, guide AV {traj['guide']}", caption=caption))
             out.append(top_views(traj, road, plots_dir / f"topview_seed_{seed}.png",
-                                 title=f"{label}: episode seed {seed}"))
+                                 title=f"{label}: episode seed {seed}", caption=caption))
     return out

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import shlex
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -18,7 +19,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from scipy.stats import mannwhitneyu
 
-from cosim.config import EVAL_SEED_START, load_config
+from cosim.config import EVAL_SEED_START, Config, load_config
 from cosim.evaluation import plots
 from cosim.evaluation.stats import RATE_METRICS, SUMMARY_METRICS, finite, format_table, median, rate, summarize
 from cosim.evaluation.store import pooled, run_name
@@ -49,15 +50,21 @@ def write_report(out: Path, phis: Sequence[float], seeds: Sequence[int], baselin
     table = {**{b: summarize(rows) for b, rows in base_rows.items()},
              **{phi_label(phi): summarize(rows) for phi, rows in phi_rows.items()}}
     counts = {**{b: len(r) for b, r in base_rows.items()}, **{phi_label(p): len(r) for p, r in phi_rows.items()}}
+    cfg = _sweep_config(out)
+    caption = plots.caption_text(plots.short_path(cfg.net.file), _config_of(command),
+                                 f"AVs trained at each SVO angle (training seeds {', '.join(map(str, seeds))}); "
+                                 f"baselines {', '.join(baselines) or 'none'}")
     figures = {
-        "Crash and merge rates over the SVO angle": _rates_vs_phi(out / "rates_vs_phi.png", phi_rows, base_rows),
-        "Traffic flow over the SVO angle": _flow_vs_phi(out / "flow_vs_phi.png", table, phis, baselines),
+        "Crash and merge rates over the SVO angle": _rates_vs_phi(out / "rates_vs_phi.png", phi_rows, base_rows,
+                                                                  caption),
+        "Traffic flow over the SVO angle": _flow_vs_phi(out / "flow_vs_phi.png", table, phis, baselines, caption),
         "The merging vehicle's distance": plots.distance_histogram(
             {label: [float(r["merger_distance"]) for r in rows] for label, rows in _ego_alt(phi_rows).items()},
-            out / "merger_distance.png"),
+            out / "merger_distance.png", marks=plots.accel_lane_marks(cfg), caption=caption),
     }
-    curves = plots.training_curves({f"{phi_label(p)} seed {s}": out / "runs" / run_name(p, s) / "episodes.csv"
-                                    for p, s in run_rows}, out / "training_curves.png")
+    curves = plots.training_curves({phi_label(p): [out / "runs" / run_name(p, s) / "episodes.csv" for s in seeds
+                                                   if (p, s) in run_rows] for p in phis},
+                                   out / "training_curves.png", caption=caption)
     if curves is not None:
         figures["Training curves"] = curves
     claims = _claims(out, phi_rows, run_rows, base_rows, seeds)
@@ -98,11 +105,24 @@ def shift_p_value(egoistic: np.ndarray, altruistic: np.ndarray) -> float:
     return float(mannwhitneyu(altruistic, egoistic, alternative="greater").pvalue)
 
 
+def _sweep_config(out: Path) -> Config:
+    """The resolved config of the sweep's first evaluated run (the net and scenario are the same for all)."""
+    return load_config(next(out.glob("runs/*/eval/config.yaml")))
+
+
+def _config_of(command: str) -> str:
+    """The --config of the sweep's command line (the default config without one)."""
+    words = shlex.split(command)
+    given = [w.split("=", 1)[1] for w in words if w.startswith("--config=")]
+    given += [b for a, b in zip(words, words[1:], strict=False) if a == "--config"]
+    return given[-1] if given else "configs/default.yaml"
+
+
 def _accel_end_distance(out: Path) -> float:
     """[m] from the ramp's start to the end of the acceleration lane. The merging vehicle starts on the ramp,
     so one that drove farther than this certainly passed the lane's end (one that started up the ramp may have
     passed it driving less: the fraction beyond is a lower bound)."""
-    cfg = load_config(next(out.glob("runs/*/eval/config.yaml")))
+    cfg = _sweep_config(out)
     return load_net(cfg.net.file, cfg.net.description).ramp_to_accel_end
 
 
@@ -174,30 +194,40 @@ def _per_seed_table(run_rows: Mapping[tuple[float, int], list], phis: Sequence[f
     return "\n".join(lines)
 
 
-def _rates_vs_phi(path: Path, phi_rows: Mapping[float, list], base_rows: Mapping[str, list]) -> Path:
-    fig = Figure(figsize=(11, 3.6), layout="constrained")
+def _rates_vs_phi(path: Path, phi_rows: Mapping[float, list], base_rows: Mapping[str, list], caption: str) -> Path:
+    fig = Figure(figsize=(11, 4.4), layout="constrained")
     axes = fig.subplots(1, 2)
     phis = sorted(phi_rows)
+    # A cause often equals the total (every crash an AV's fault): each series is shifted a little along phi,
+    # with its own marker and line, so that none hides another.
+    styles = [("o", "-"), ("s", "--"), ("^", ":"), ("D", "-.")]
+    dodge = 0.012 * (max(phis) - min(phis) or 1.0)
     for ax, labels in zip(axes, (list(RATES)[:4], ["merge success [%]"]), strict=True):
         for i, label in enumerate(labels):
             stats = [rate(phi_rows[p], RATES[label]) for p in phis]
             mean = np.array([s["mean"] for s in stats])
             err = np.array([[s["mean"] - s["ci_low"] for s in stats], [s["ci_high"] - s["mean"] for s in stats]])
-            ax.errorbar(phis, mean, yerr=err, marker="o", capsize=3, color=f"C{i}", label=label.replace(" [%]", ""))
+            marker, ls = styles[i]
+            x = np.asarray(phis) + dodge * (i - (len(labels) - 1) / 2)
+            ax.errorbar(x, mean, yerr=err, marker=marker, ls=ls, ms=5, capsize=3, color=f"C{i}",
+                        label=label.replace(" [%]", ""))
         for j, (b, rows) in enumerate(base_rows.items()):
-            ax.axhline(rate(rows, RATES[labels[0]])["mean"], ls="--", lw=0.8, color=f"C{j + 5}",
-                       label=f"{b} ({labels[0].replace(' [%]', '')})")
+            ax.axhline(rate(rows, RATES[labels[0]])["mean"], ls=(0, (4, 2)), lw=1, color=f"C{j + 5}",
+                       label=f"baseline {b} ({labels[0].replace(' [%]', '')})")
         ax.set_xlabel("SVO angle phi [rad]")
         ax.set_ylabel("% of episodes")
         ax.set_ylim(-2, 102)
-        ax.legend(fontsize=7)
-    axes[0].set_title("Crashes (total and by cause), 95% intervals")
-    axes[1].set_title("Merge success, 95% intervals")
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.2), ncols=2, frameon=False)
+    axes[0].set_title("Crashes (total and by cause)")
+    axes[1].set_title("Merge success")
+    fig.suptitle("Trained AVs over the SVO angle (pooled over seeds), 95% Wilson intervals; dashed: baselines")
+    plots.add_caption(fig, caption)
     return plots.save(fig, path)
 
 
-def _flow_vs_phi(path: Path, table: Mapping[str, Mapping], phis: Sequence[float], baselines: Sequence[str]) -> Path:
-    fig = Figure(figsize=(10, 3.4), layout="constrained")
+def _flow_vs_phi(path: Path, table: Mapping[str, Mapping], phis: Sequence[float], baselines: Sequence[str],
+                 caption: str) -> Path:
+    fig = Figure(figsize=(10, 4.0), layout="constrained")
     axes = fig.subplots(1, 2)
     xs = sorted(phis)
     for ax, metric in zip(axes, FLOW, strict=True):
@@ -208,9 +238,12 @@ def _flow_vs_phi(path: Path, table: Mapping[str, Mapping], phis: Sequence[float]
         ax.errorbar(xs, mean, yerr=err, marker="o", capsize=3, label="trained AVs")
         for j, b in enumerate(baselines):
             if metric in table[b]:
-                ax.axhline(table[b][metric]["mean"], ls="--", lw=0.8, color=f"C{j + 1}", label=b)
+                ax.axhline(table[b][metric]["mean"], ls=(0, (4, 2)), lw=1, color=f"C{j + 1}", label=f"baseline {b}")
         ax.set_xlabel("SVO angle phi [rad]")
         ax.set_ylabel(metric)
-        ax.set_title(f"{metric.split(' [')[0]} over the flow window, 95% intervals")
-        ax.legend(fontsize=7)
+        ax.set_title(f"{metric.split(' [')[0]} over the flow window")
+    axes[-1].legend(*axes[0].get_legend_handles_labels(), loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8,
+                    frameon=False)
+    fig.suptitle("Traffic flow over the SVO angle (SUMO's detectors and tripinfo), 95% intervals")
+    plots.add_caption(fig, caption)
     return plots.save(fig, path)

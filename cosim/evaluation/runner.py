@@ -15,7 +15,9 @@ Contract:
   window, and `distance_check`, the largest |our odometer - SUMO's tripinfo routeLength| [m] over the
   episode's vehicles), `summary.json` (each metric's mean and interval over the requested seeds,
   `cosim.evaluation.store.summarize_evaluation`, written atomically), `trajectories/seed_S.npz` for the first
-  `trajectories` episodes, `sumo/episode_S/` (SUMO's tripinfo and induction-loop files) and `plots/`.
+  `trajectories` episodes, `sumo/episode_S/` (SUMO's tripinfo and induction-loop files), `plots/` (with
+  `video_seed_S.mp4` or `.gif` for the first `videos` episodes, `cosim.evaluation.video`) and `report.md` (the
+  table, the figures and links to the videos).
 - Resume: a second call with the same `out_dir` skips the seeds already in `episodes.csv`; a folder
   holding an evaluation of another policy / checkpoint / net / config (`config_sha256`; the folder's
   location, `sim.output_dir`, is not part of it) is refused. One writer per folder (`cosim.files.FolderLock`,
@@ -25,7 +27,7 @@ Contract:
 - `workers > 1` runs episodes on `cosim.workers.WorkerPool` (libsumo runs one simulation per process); a
   worker that gives no step for `evaluate.step_timeout` seconds is replaced (logged), and an episode whose
   worker failed is played again by its replacement.
-- Bad input raises a `CosimError`: episodes or workers < 1 or trajectories < 0 (a `ConfigError`), a
+- Bad input raises a `CosimError`: episodes or workers < 1 or trajectories or videos < 0 (a `ConfigError`), a
   checkpoint whose observation shape or agents do not fit the net/preset, a net without a merge.
 """
 
@@ -50,13 +52,7 @@ from cosim.environment.control import Action
 from cosim.environment.merge_env import MergeEnv
 from cosim.environment.policies import POLICIES
 from cosim.errors import ConfigError, CosimError, EpisodeError, check_at_least
-from cosim.evaluation.store import (
-    config_hash,
-    evaluation_report,
-    save_trajectory,
-    scenario_hash,
-    summarize_evaluation,
-)
+from cosim.evaluation.store import config_hash, save_trajectory, scenario_hash, summarize_evaluation
 from cosim.files import AppendCsv, FolderLock, FolderState, atomic_write_text, read_csv
 from cosim.progress import Heartbeat
 from cosim.sumo.setting import setting
@@ -67,9 +63,11 @@ log = logging.getLogger(__name__)
 BASELINES = ("sumo", "idle", "random", "scripted", "courteous")
 
 
-def check_counts(episodes: int, workers: int, trajectories: int, prefix: str = "") -> None:
-    """`ConfigError` unless episodes >= 1, workers >= 1 and trajectories >= 0 (`prefix`: e.g. "--" for flags)."""
-    for name, value, least in (("episodes", episodes, 1), ("workers", workers, 1), ("trajectories", trajectories, 0)):
+def check_counts(episodes: int, workers: int, trajectories: int, prefix: str = "", videos: int = 0) -> None:
+    """`ConfigError` unless episodes >= 1, workers >= 1, trajectories >= 0 and videos >= 0 (`prefix`: e.g. "--"
+    for flags)."""
+    for name, value, least in (("episodes", episodes, 1), ("workers", workers, 1), ("trajectories", trajectories, 0),
+                               ("videos", videos, 0)):
         check_at_least(prefix + name, value, least)
 
 
@@ -134,6 +132,8 @@ class Job:
     policy: Policy
     out_dir: str
     record: frozenset[int]  # seeds whose trajectories are saved
+    videos: frozenset[int] = frozenset()  # seeds whose videos are written ...
+    video_dir: str = ""  # ... into this folder (`cosim.evaluation.video`)
 
 
 class Runner:
@@ -142,6 +142,7 @@ class Runner:
     def __init__(self, job: Job, env: MergeEnv, worker: bool = False) -> None:
         self.job = job
         self.env = env
+        self.video: Path | None = None  # the last video written
         try:
             self.policy = job.policy.load(self.env, worker)
         except BaseException:  # e.g. a checkpoint that does not fit: free the process's SUMO slot
@@ -149,9 +150,18 @@ class Runner:
             raise
 
     def run(self, seed: int) -> dict[str, Any]:
+        """The episode's row; with its seed in `job.videos` (or with sumo-gui) what a person sees of it too
+        (`cosim.evaluation.video.EpisodeView`): its video in `job.video_dir` (`self.video`: the file)."""
         env = self.env
         act = self.policy(seed)
+        view = None
+        if seed in self.job.videos or env.session.gui is not None:
+            from cosim.evaluation.video import EpisodeView  # matplotlib only for videos
+
+            view = EpisodeView(env, video=seed in self.job.videos)
         obs, _ = env.reset(seed=seed)
+        if view is not None:
+            view.start()
         keep_alive()  # in a worker: each step restarts its timeout (evaluate.step_timeout)
         # The env's own tracker gives the row; a second one records the trajectories of the plotted episodes.
         recorder = env.new_tracker(record=True) if seed in self.job.record else None
@@ -161,16 +171,23 @@ class Runner:
         infos: dict[str, Any] = {}
         while env.agents:
             actions = act(obs)
+            if view is not None:
+                view.decide(actions)
             obs, rewards, _, _, infos = env.step(actions)
             for a, r in rewards.items():
                 returns[a] += r
             if recorder is not None:
                 recorder.observe(env.snapshot, actions if env.session.drive_avs else None)
             keep_alive()
+        if view is not None:
+            view.stop()
         env.flush_outputs()
         summary = next(iter(infos.values()))["episode"]  # every agent's last info carries it
         row = {"seed": seed, "policy": self.job.policy.name, **summary,
                "av_return": float(np.mean(list(returns.values())))}
+        if view is not None and view.video:
+            title = f"{self.job.policy.name}, episode seed {seed}"
+            self.video = view.write(Path(self.job.video_dir) / f"video_seed_{seed}", title)
         sumo = env.sumo_outputs.pop(seed, None)
         if sumo is not None:
             row.update(sumo.as_row())
@@ -249,23 +266,24 @@ def run_episodes(job: Job, seeds: Sequence[int], workers: int = 1,
 # -- the evaluation ------------------------------------------------------------------------------------
 def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: int = EVAL_SEED_START,
              workers: int = 1, trajectories: int = 3, confidence: float = 0.95, run_dir: Path | None = None,
-             plots: bool = True, overrides: Sequence[str] = ()) -> dict[str, Any]:
+             plots: bool = True, overrides: Sequence[str] = (), videos: int = 0) -> dict[str, Any]:
     """Evaluate `policy` on episodes `seed .. seed + episodes - 1` into `out_dir`; returns the summary dict
     (also written to `out_dir/summary.json`, with what it ran on: `cosim.sumo.setting.setting`, the
     command line's `overrides` included; `report.md` words it). Resumes an interrupted evaluation in the same
     folder."""
-    check_counts(episodes, workers, trajectories)
+    check_counts(episodes, workers, trajectories, videos=videos)
     out_dir = Path(out_dir).resolve()
     cfg = load_config(cfg, {**policy.overrides, "sim.outputs": True, "sim.output_dir": str(out_dir / "sumo")})
     identity = policy.identity()
     where = setting(cfg, overrides)
     meta = {"policy": policy.name, "checkpoint": identity["checkpoint"], "greedy": identity["greedy"],
-            "net": cfg.net.file, "net_sha256": where["net"]["sha256"],
+            "net": cfg.net.file, "net_sha256": where["net"]["sha256"], "config": cfg.source,
             "run": None if run_dir is None else str(Path(run_dir).resolve()),
             "config_sha256": config_hash(cfg.to_dict()), "scenario_sha256": scenario_hash(cfg.to_dict()),
             "trained_updates": identity["trained_updates"], "model_sha256": identity["model_sha256"]}
     seeds = [seed + k for k in range(episodes)]
-    job = Job(cfg.to_dict(), policy, str(out_dir), frozenset(seeds[:trajectories]))
+    job = Job(cfg.to_dict(), policy, str(out_dir), frozenset(seeds[:trajectories]), frozenset(seeds[:videos]),
+              str(out_dir / "plots"))
     lock = FolderLock(out_dir, "cosim evaluate")
     lock.acquire(create=False)  # an evaluation under way there is refused before its files are read
     before = FolderState.capture(out_dir)
@@ -299,7 +317,9 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
             from cosim.evaluation.plots import plot_evaluation  # matplotlib only when plotting
 
             figures = plot_evaluation(out_dir, out_dir / "plots", label=policy.name, rows=rows)
-        atomic_write_text(out_dir / "report.md", evaluation_report(summary, figures, out_dir) + "\n")
+        from cosim.evaluation.compare import evaluation_report  # the comparison's report, of one evaluation
+
+        evaluation_report(out_dir, policy.name, figures)
         return summary
     except CosimError:
         if not _has_episodes(csv_path):  # nothing to keep: nothing may block the corrected rerun into this folder

@@ -2,12 +2,12 @@
 
 Contract: `episodes.csv` holds one row per episode (`cosim.files.read_csv` reads it); `summarize_evaluation`
 and `pooled` pick the rows of the requested seeds and summarise them (`cosim.evaluation.stats.summarize`);
-`trajectories/seed_S.npz` holds the recorded episodes (`save_trajectory` / `load_trajectory`); `summary.json`
+`trajectories/seed_S.npz` holds the recorded episodes (`save_trajectory` / `load_trajectory`), `plots/` their
+videos (`video_files`); `summary.json`
 names what was evaluated (`find_evaluation` reads it: a `CosimError` naming it when it is no JSON object or lacks
 a key a reader needs). `checked_rows` gives an evaluation's rows checked against its summary: a `CosimError`
 naming `episodes.csv` and both counts when the file is missing or holds fewer episodes than the summary counts.
-`config_hash` and `scenario_hash` tell whether two folders evaluated the same episodes. `evaluation_report`
-is its report.md.
+`config_hash` and `scenario_hash` tell whether two folders evaluated the same episodes.
 """
 
 from __future__ import annotations
@@ -22,9 +22,8 @@ from typing import Any
 import numpy as np
 
 from cosim.errors import CosimError
-from cosim.evaluation.stats import format_table, summarize
+from cosim.evaluation.stats import summarize
 from cosim.files import atomic_path, read_csv
-from cosim.sumo.setting import setting_lines
 
 
 @dataclass(frozen=True)
@@ -132,6 +131,12 @@ def trajectory_files(out_dir: Path) -> list[Path]:
     return sorted((out_dir / "trajectories").glob("seed_*.npz"), key=lambda p: int(p.stem.split("_")[1]))
 
 
+def video_files(eval_dir: Path) -> list[Path]:
+    """The episode videos in `eval_dir/plots/` (`cosim evaluate --videos`), by seed."""
+    found = [p for p in (Path(eval_dir) / "plots").glob("video_seed_*.*") if p.suffix in (".mp4", ".gif")]
+    return sorted(found, key=lambda p: int(p.stem.split("_")[2]))
+
+
 def load_trajectory(path: Path) -> dict[str, np.ndarray]:
     with np.load(path) as data:
         return {k: data[k] for k in data.files}
@@ -146,19 +151,3 @@ def pooled(eval_dirs: Sequence[Path], first_seed: int, episodes: int) -> tuple[l
     """The evaluation rows of several folders (one per training seed), pooled, and their summary."""
     rows = [r for d in eval_dirs for r in seed_rows(d, first_seed, episodes)]
     return rows, summarize(rows)
-
-
-def evaluation_report(summary: dict[str, Any], figures: Sequence[Path], out_dir: Path) -> str:
-    """One evaluation's report.md: what was evaluated, on what, the metrics with their intervals, the figures."""
-    first, n = summary["first_seed"], summary["episodes"]
-    label = summary.get("policy", "policy")
-    what = f"policy **{label}**" + (f", checkpoint `{summary['checkpoint']}`" if summary.get("checkpoint") else "")
-    lines = [f"# Evaluation: {label}", "", f"{what}, {'greedy' if summary.get('greedy', True) else 'sampled'} "
-             f"actions, {n} episodes on evaluation seeds {first}..{first + n - 1}.", "", "## Setting", "",
-             *setting_lines(summary["setting"]), "", "## Metrics", "",
-             f"Mean [{summary['confidence']:.0%} interval: Wilson for rates, Student t otherwise].", "",
-             format_table({label: summary["metrics"]}, {label: n}, markdown=True, confidence=summary["confidence"]),
-             ""]
-    if figures:
-        lines += ["## Figures", "", *(f"![{p.stem}]({p.relative_to(out_dir)})" for p in figures), ""]
-    return "\n".join(lines)

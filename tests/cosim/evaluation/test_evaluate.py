@@ -269,12 +269,31 @@ def test_an_evaluation_records_what_it_ran_on_and_compare_warns_across_nets(
     assert two["flow_window_s"] == 8.0 and two["detector"]["edge"] == "hw_out"
     assert summaries["two_lane"]["net_sha256"] != summaries["dilemma"]["net_sha256"]
     report = (tmp_path / "two_lane" / "report.md").read_text()
-    for needle in ("# Evaluation: idle", "highway: hw_in (2 lanes", "acceleration lane(s) [0] of 'hw_merge'",
-                   "overrides: `--set sim.horizon=8`", "flow window: the first 8 s of each episode",
-                   "| merge success [%] |"):
+    for needle in ("## Setting (the same for every run)", "highway: hw_in (2 lanes",
+                   "acceleration lane(s) [0] of 'hw_merge'", "overrides: `--set sim.horizon=8`",
+                   "flow window: the first 8 s of each episode", "| merge success [%] |"):
         assert needle in report, needle
     caplog.set_level("WARNING")
     compare([tmp_path / "dilemma", tmp_path / "two_lane"], tmp_path / "report")
     assert "different net file content (net_sha256)" in caplog.text
     text = (tmp_path / "report" / "report.md").read_text()
     assert "## Setting of dilemma" in text and "## Setting of two_lane" in text
+
+
+def test_cli_evaluate_videos_beside_the_time_space_diagrams(tmp_path: Path, caplog) -> None:
+    out = tmp_path / "ev"
+    assert main(["evaluate", "--policy", "courteous", "--episodes", "2", "--seed", "100", "--trajectories", "1",
+                 "--videos", "1", "--set", "sim.horizon=3", "--out", str(out)]) == 0
+    plots_dir = out / "plots"
+    assert sorted(p.name for p in plots_dir.glob("video_seed_*")) == ["video_seed_100.mp4"]
+    assert (plots_dir / "timespace_seed_100.png").is_file()
+    report = (out / "report.md").read_text()
+    assert "[video_seed_100 (MP4)](plots/video_seed_100.mp4)" in report
+    assert "![timespace_seed_100](plots/timespace_seed_100.png)" in report and "| crash [%]" in report
+    # `cosim compare` links the evaluation's videos where they are.
+    assert main(["compare", str(out), "--labels", "courteous", "--out", str(tmp_path / "cmp")]) == 0
+    assert "[video_seed_100 (MP4)](../ev/plots/video_seed_100.mp4)" in (tmp_path / "cmp" / "report.md").read_text()
+    caplog.clear()
+    bad = ["evaluate", "--policy", "idle", "--episodes", "1", "--videos", "-1", "--out", str(tmp_path / "x")]
+    assert main(bad) == 2
+    assert caplog.messages == ["--videos: must be >= 0, got -1"]

@@ -1,14 +1,19 @@
-"""Figures of a real recorded episode: labelled, with a legend and a title, and continuous through junctions."""
+"""Figures a reader takes in at a glance: a title, axis labels with units, legends that cover no data, the net,
+config and policy in a caption; the distance histogram marks the acceleration lane, the bars hold the flow
+metrics, the training curves are one smoothed line per group with a band and the crash target marked; and the
+figures of a real recorded episode are labelled and continuous through junctions."""
 
 from __future__ import annotations
 
+import csv
 from pathlib import Path
 
 import numpy as np
 import pytest
-from matplotlib.figure import Figure
+from matplotlib.collections import PolyCollection
 
 import cosim
+from cosim.config import load_config
 from cosim.environment.policies import POLICIES
 from cosim.environment.render import COLOURS as TOP_VIEW_COLOURS
 from cosim.environment.velocity_map import rasterize_road
@@ -16,7 +21,8 @@ from cosim.evaluation import plots
 from cosim.sumo.roadnet import load_roadnet
 from cosim.sumo.snapshot import KIND_MERGER
 
-pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
+CAPTION = plots.caption_text("sumo_net/dilemma/dilemma.net.xml", "configs/default.yaml", "courteous")
+
 
 @pytest.fixture(scope="module")
 def merged_episode() -> dict[str, np.ndarray]:
@@ -40,17 +46,13 @@ def merged_episode() -> dict[str, np.ndarray]:
     pytest.fail("no courteous episode of ten merged")
 
 
-@pytest.fixture
-def figures(monkeypatch: pytest.MonkeyPatch) -> list[Figure]:
-    drawn: list[Figure] = []
-    monkeypatch.setattr(plots, "save", lambda fig, path: drawn.append(fig) or path)
-    return drawn
-
-
-def test_top_views_have_axis_labels_a_legend_and_a_title(merged_episode, figures, tmp_path: Path) -> None:
+@pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
+def test_top_views_have_axis_labels_a_legend_and_a_title(merged_episode, figures, readable, tmp_path: Path) -> None:
     lanes = load_roadnet("sumo_net/dilemma/dilemma.net.xml").lane_shapes()
-    plots.top_views(merged_episode, rasterize_road(lanes), tmp_path / "top.png", title="courteous: episode seed 1")
+    plots.top_views(merged_episode, rasterize_road(lanes), tmp_path / "top.png", title="courteous: episode seed 1",
+                    caption=CAPTION)
     (fig,) = figures
+    readable(fig, CAPTION)
     axes = fig.axes
     assert fig.get_suptitle().startswith("courteous: episode seed 1: top views around the merge (merge at ")
     assert all(ax.get_ylabel() == "y [m]" for ax in axes) and axes[-1].get_xlabel().startswith("x [m]")
@@ -66,9 +68,16 @@ def test_top_views_have_axis_labels_a_legend_and_a_title(merged_episode, figures
         assert x1 - x0 == pytest.approx(220.0, abs=2.0)  # the 2 x 110 m window
 
 
-def test_time_space_lines_are_continuous_through_the_junction(merged_episode, figures, tmp_path: Path) -> None:
-    plots.time_space(merged_episode, tmp_path / "ts.png")
+@pytest.mark.sumo
+def test_time_space_lines_are_continuous_through_the_junction(merged_episode, figures, readable,
+                                                               tmp_path: Path) -> None:
+    plots.time_space(merged_episode, tmp_path / "ts.png", title="courteous: episode seed 1", caption=CAPTION)
     (fig,) = figures
+    readable(fig, CAPTION)
+    # Both ends of the acceleration lane are drawn and named.
+    lines = {round(line.get_ydata()[0], 3) for line in fig.axes[0].lines if line.get_linestyle() == "--"}
+    assert lines == {round(float(merged_episode[k]), 3) for k in ("merge_start", "merge_end")}
+    assert [t.get_text() for t in fig.axes[0].texts] == ["acceleration lane starts", "acceleration lane ends"]
     merger = [line for line in fig.axes[0].lines
               if line.get_linewidth() > 2 and line.get_color() == plots.COLORS[KIND_MERGER]]
     (line,) = merger
@@ -77,3 +86,70 @@ def test_time_space_lines_are_continuous_through_the_junction(merged_episode, fi
     assert np.isfinite(s).all() and len(s) == len(t) > 10
     assert np.all(np.diff(s) >= -1e-6) and np.max(np.diff(s)) < 40.0 * np.max(np.diff(t))
     assert merged_episode["kind"].tolist().count(KIND_MERGER) == len(s)
+
+
+def test_bars_hold_the_flow_metrics(figures, readable, tmp_path: Path) -> None:
+    stats = {m: {"mean": 10.0, "ci_low": 8.0, "ci_high": 12.0} for m in plots.BAR_METRICS}
+    plots.bars({"courteous": stats, "scripted": stats}, tmp_path / "bars.png", caption=CAPTION)
+    (fig,) = figures
+    readable(fig, CAPTION, runs_on_x=True)
+    assert [ax.get_ylabel() for ax in fig.axes] == ["crash [%]", "merge success [%]", "mean distance [m]",
+                                                    "throughput [veh/h]", "time loss [s]"]
+    assert all([t.get_text() for t in ax.get_xticklabels()] == ["courteous", "scripted"] for ax in fig.axes)
+
+
+def test_distance_histogram_marks_the_acceleration_lane(figures, readable, tmp_path: Path) -> None:
+    cfg = load_config("configs/default.yaml")
+    marks = plots.accel_lane_marks(cfg)
+    # dilemma: the merging vehicle starts 3.6-5.4 s before the acceleration lane at 0.8-1.0 x the ramp's 22.22
+    # m/s (64-120 m), its end one merge edge (118.8 m between the junctions) further.
+    (s0, s1), (e0, e1) = marks.values()
+    assert (s0, s1) == pytest.approx((3.6 * 0.8 * 22.22, 5.4 * 22.22))
+    merge_edge = load_roadnet(cfg.net.file).edge_length("hw_merge")
+    assert e0 - s0 == pytest.approx(merge_edge) and e1 - s1 == pytest.approx(merge_edge)
+    distances = {"egoistic": [210.0, 212.0, 215.0, 430.0], "altruistic": [420.0, 440.0, 211.0]}
+    plots.distance_histogram(distances, tmp_path / "h.png", marks=marks, caption=CAPTION)
+    (fig,) = figures
+    readable(fig, CAPTION)
+    (ax,) = fig.axes
+    drawn = sorted(line.get_xdata()[0] for line in ax.lines if len(line.get_xdata()) == 2)
+    assert drawn == pytest.approx(sorted([s0, s1, e0, e1]))
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert labels == ["egoistic (n=4)", "altruistic (n=3)", f"acceleration lane starts: {s0:.0f}-{s1:.0f} m",
+                      f"acceleration lane ends: {e0:.0f}-{e1:.0f} m"]
+    ticks = [t for t in ax.get_yticks() if ax.get_ylim()[0] <= t <= ax.get_ylim()[1]]
+    assert ticks and all(float(t).is_integer() for t in ticks)  # no half episodes
+
+
+def _log(path: Path, crash: np.ndarray) -> Path:
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["episode", "return_mean", "crashed", "merged", "mean_distance"])
+        w.writerows([i + 1, 1.0, c, 0, 100.0] for i, c in enumerate(crash))
+    return path
+
+
+def test_training_curves_one_line_per_group_with_its_band_and_the_crash_target(figures, readable,
+                                                                                tmp_path: Path) -> None:
+    # Two angles: one with three seeds whose crash rate falls from 100% to 0% at episodes 300, 400, 500, one
+    # with a single seed that never gets below 50%.
+    fall = {seed: _log(tmp_path / f"a{seed}.csv", (np.arange(600 + 10 * seed) < 300 + 100 * seed).astype(int))
+            for seed in range(3)}
+    stay = _log(tmp_path / "b.csv", np.arange(650) % 2)
+    plots.training_curves({"phi=0.785": list(fall.values()), "phi=0.000": [stay]}, tmp_path / "t.png", window=100,
+                          caption=CAPTION)
+    (fig,) = figures
+    readable(fig, CAPTION)
+    crash = next(ax for ax in fig.axes if ax.get_ylabel().startswith("crash rate"))
+    curves = [line for line in crash.lines if line.get_linewidth() == 1.6]
+    assert len(curves) == 2  # one smoothed line per group, no raw per-episode lines:
+    assert len(crash.lines) == 4  # besides them only the crash marker and the target's dotted line
+    x, y = (np.asarray(a, float) for a in curves[0].get_data())
+    assert len(x) == 600 - 100 + 1  # up to the shortest seed's episodes
+    assert y[0] == 100.0 and y[-1] == 0.0
+    bands = [c for c in crash.collections if isinstance(c, PolyCollection)]
+    assert len(bands) == 1  # a band for the group with several seeds only
+    # The mean of the three seeds' 100-episode means first reaches 2% where the last seed's reaches 6%
+    # (1/3 of 6%): 94 of its 100 episodes after its fall at 500, i.e. at the window ending at episode 594.
+    (marker,) = [line for line in crash.lines if line.get_marker() == "v"]
+    assert marker.get_xdata()[0] == 594 and marker.get_ydata()[0] == pytest.approx(2.0)
