@@ -77,8 +77,11 @@ def _positive(args: argparse.Namespace, *names: str, least: int = 1) -> None:
 # -- build-net -----------------------------------------------------------------------------------------
 def _build_net_arguments(p: argparse.ArgumentParser) -> None:
     from sumo_net.build import MergeGeometry
+    from sumo_net.shapes import SHAPES
 
     d = MergeGeometry()
+    p.add_argument("--shape", choices=sorted(SHAPES), default=None,
+                   help="one of the usual shapes (sumo_net/shapes.py) instead of the flags below")
     p.add_argument("--lanes", type=int, default=d.lanes, help="through lanes of the highway")
     p.add_argument("--upstream-length", type=float, default=d.upstream_length, help="[m] before the merge")
     p.add_argument("--accel-length", type=float, default=d.accel_length, help="[m] acceleration lane")
@@ -87,19 +90,34 @@ def _build_net_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--highway-speed", type=float, default=d.highway_speed, help="[m/s] highway speed limit")
     p.add_argument("--ramp-speed", type=float, default=d.ramp_speed, help="[m/s] ramp speed limit")
     p.add_argument("--lane-width", type=float, default=d.lane_width, help="[m]")
-    p.add_argument("--name", default=d.name, help="file stem of the outputs")
+    p.add_argument("--ramp-lanes", type=int, default=d.ramp_lanes, help="lanes of the ramp (and acceleration lanes)")
+    p.add_argument("--upstream-edges", type=int, default=d.upstream_edges, help="edges the approach is split into")
+    p.add_argument("--ramp-edges", type=int, default=d.ramp_edges, help="edges the ramp is split into")
+    p.add_argument("--downstream-edges", type=int, default=d.downstream_edges,
+                   help="edges the road after the merge is split into")
+    p.add_argument("--lane-drop", action="store_true",
+                   help="the leftmost lane ends after the first edge past the merge (needs --downstream-edges 2)")
+    p.add_argument("--curve-radius", type=float, default=d.curve_radius,
+                   help="[m] the highway bends left on this radius (0: straight)")
+    p.add_argument("--name", default=None, help="file stem of the outputs (default: merge, or the shape's name)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
 
 
 def _build_net(args: argparse.Namespace) -> int:
     from sumo_net.build import build_merge_net
+    from sumo_net.shapes import SHAPES
 
-    net_file = build_merge_net(
-        args.out, lanes=args.lanes, upstream_length=args.upstream_length, accel_length=args.accel_length,
-        ramp_length=args.ramp_length, downstream_length=args.downstream_length,
-        highway_speed=args.highway_speed, ramp_speed=args.ramp_speed, lane_width=args.lane_width,
-        name=args.name)
-    log.info("wrote %s and %s", net_file, net_file.with_name(f"{args.name}.yaml"))
+    name = args.name or args.shape or "merge"
+    if args.shape is not None:
+        net_file = build_merge_net(args.out, name=name, **SHAPES[args.shape])
+    else:
+        net_file = build_merge_net(
+            args.out, lanes=args.lanes, upstream_length=args.upstream_length, accel_length=args.accel_length,
+            ramp_length=args.ramp_length, downstream_length=args.downstream_length,
+            highway_speed=args.highway_speed, ramp_speed=args.ramp_speed, lane_width=args.lane_width, name=name,
+            ramp_lanes=args.ramp_lanes, upstream_edges=args.upstream_edges, ramp_edges=args.ramp_edges,
+            downstream_edges=args.downstream_edges, lane_drop=args.lane_drop, curve_radius=args.curve_radius)
+    log.info("wrote %s and %s", net_file, net_file.with_name(f"{name}.yaml"))
     return 0
 
 

@@ -1,0 +1,92 @@
+"""A trained policy on nets it never saw, beside the baselines there: merge success and crash, 95% intervals.
+
+    python scripts/transfer.py --run runs/alt --shapes curved two_lane_ramp lane_drop --out runs/transfer
+
+Builds each shape (sumo_net/shapes.py) into OUT/nets/ (its description removed: the roles are inferred, as for
+a user's own net), then evaluates the run's policy (its own config, on each net in turn) and the baselines
+`idle`, `scripted`, `courteous`, `sumo` on the run's own net and on each built net, all on the same evaluation
+seeds. Every evaluation resumes where an interrupted one stopped. Writes OUT/transfer.md (the table, the nets,
+the wall time) and OUT/transfer.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+from cosim.config import EVAL_SEED_START, load_config
+from cosim.errors import CosimError
+from cosim.evaluation.checknet import POLICIES
+from cosim.evaluation.runner import Baseline, evaluate
+from cosim.files import atomic_write_text
+from cosim.sumo.net import load_net, net_summary, summary_lines
+from sumo_net.shapes import SHAPES, build_shape
+
+log = logging.getLogger("transfer")
+METRICS = ("merge success [%]", "crash [%]")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--run", type=Path, required=True, help="training run folder (config.yaml, checkpoint.pt)")
+    parser.add_argument("--shapes", nargs="+", choices=sorted(SHAPES), default=["curved", "two_lane_ramp",
+                                                                                 "lane_drop"])
+    parser.add_argument("--episodes", type=int, default=100)
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=EVAL_SEED_START, help="first evaluation seed")
+    parser.add_argument("--out", type=Path, default=Path("runs/transfer"))
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    from agents.checkpoint import TrainedPolicy, find_checkpoint  # torch only once the input is checked
+
+    t0 = time.perf_counter()
+    run_cfg = load_config(args.run / "config.yaml")
+    nets = {"own": Path(run_cfg.net.file)}
+    for shape in args.shapes:
+        net = args.out / "nets" / shape / f"{shape}.net.xml"
+        if not net.is_file():
+            net = build_shape(shape, net.parent)
+            net.with_name(f"{shape}.yaml").unlink()
+        nets[shape] = net
+    trained = TrainedPolicy(str(find_checkpoint(args.run, None)), greedy=True)
+    results: dict[str, dict[str, dict]] = {}
+    for name, net in nets.items():
+        cfg = load_config(run_cfg, [f"net.file={net.resolve()}", "net.description=null"])
+        for label, policy in (("trained", trained), *((p, Baseline(p)) for p in POLICIES)):
+            summary = evaluate(cfg, policy, args.out / name / label, episodes=args.episodes, seed=args.seed,
+                               workers=args.workers, trajectories=0, plots=False)
+            results.setdefault(name, {})[label] = {m: summary["metrics"][m] for m in METRICS}
+            log.info("%s on %s: merge %.1f%%, crash %.1f%%", label, name, *(results[name][label][m]["mean"]
+                                                                          for m in METRICS))
+    wall = time.perf_counter() - t0
+    labels = ["trained", *POLICIES]
+    lines = [f"# Transfer: {args.run} on nets it never saw", "",
+             f"Merge success and crash [%], mean [95% Wilson interval], {args.episodes} episodes each on evaluation "
+             f"seeds {args.seed}..{args.seed + args.episodes - 1}; `trained` is {args.run}'s policy (greedy), "
+             f"trained on `{nets['own']}`. Wall time {wall:.0f} s (episodes done before a resume not counted).", "",
+             "| net | metric | " + " | ".join(labels) + " |", "|---|---|" + "---|" * len(labels)]
+    for name in nets:
+        for m in METRICS:
+            cells = [f"{results[name][p][m]['mean']:.1f} [{results[name][p][m]['ci_low']:.1f}, "
+                     f"{results[name][p][m]['ci_high']:.1f}]" for p in labels]
+            lines.append(f"| {name} | {m} | " + " | ".join(cells) + " |")
+    lines += ["", "The nets:", ""]
+    for name, net in nets.items():
+        lines += [f"- **{name}**: " + "; ".join(summary_lines(net_summary(load_net(net)))[1:5])]
+    atomic_write_text(args.out / "transfer.md", "\n".join(lines) + "\n")
+    atomic_write_text(args.out / "transfer.json", json.dumps({"run": str(args.run), "nets": {k: str(v) for k, v in
+                                                              nets.items()}, "results": results, "wall_s": wall},
+                                                             indent=2) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    try:
+        main()
+    except CosimError as exc:  # bad input: one line, as from the cosim command
+        log.error("%s", exc)
+        sys.exit(2)
