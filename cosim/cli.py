@@ -286,7 +286,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     overrides = config_overrides(args)
     cfg = load_config(config, overrides)
     ec = cfg.evaluate
-    episodes = ec.episodes if args.episodes is None else args.episodes
+    # In demand mode an "episode" is a run of minutes: demand.seeds of them by default.
+    episodes = args.episodes if args.episodes is not None else cfg.demand.seeds if cfg.demand.enabled else ec.episodes
     workers = ec.workers if args.workers is None else args.workers
     trajectories = ec.trajectories if args.trajectories is None else args.trajectories
     check_counts(episodes, workers, trajectories, prefix="--", videos=args.videos)

@@ -196,8 +196,10 @@ SCENARIO_TWINS: tuple[Twins, ...] = (
 DRIVER_TWINS: tuple[Twins, ...] = ((("max_speed_factor",), ("max_speed",)),)
 AV_TWINS: tuple[Twins, ...] = ((("max_speed_factor",), ("max_speed",)), (("speed_step_factor",), ("speed_step",)))
 OBSERVATION_TWINS: tuple[Twins, ...] = ((("speed_scale_factor",), ("speed_scale",)),)
+DEMAND_TWINS: tuple[Twins, ...] = ((("mainline_share",), ("mainline_vph",)), (("ramp_share",), ("ramp_vph",)),
+                                   (("av_penetration",), ("av_count",)))
 TWINS: dict[str, tuple[Twins, ...]] = {"scenario": SCENARIO_TWINS, "hv": DRIVER_TWINS, "merger": DRIVER_TWINS,
-                                       "av": AV_TWINS, "observation": OBSERVATION_TWINS}
+                                       "av": AV_TWINS, "observation": OBSERVATION_TWINS, "demand": DEMAND_TWINS}
 
 
 def _given(data: Mapping[str, Any], keys: Sequence[str]) -> bool:
@@ -521,6 +523,45 @@ class ObservationConfig(_Section):
         return self
 
 
+class DemandConfig(_Section):
+    """Traffic over minutes instead of one episode (`cosim.sumo.demand`, `cosim.environment.demand_env`): vehicles
+    enter the highway's start and the ramp's with exponential headways at the given demand, a share of the
+    mainline ones AVs, from the start to the window's end; the first `warmup` seconds fill the net and are not
+    measured. Capacities, for demands stated as shares: the highway's per lane from the HCM's basic freeway
+    segments by its speed limit (2,200 pc/h/ln at 80 km/h or less to 2,400 at 113 km/h or more), the ramp's from
+    the HCM's ramp roadways (1,800 pc/h at 32 km/h or less to 2,200 above 80 km/h); vehicles are taken as
+    passenger cars."""
+
+    twins: ClassVar[tuple[Twins, ...]] = DEMAND_TWINS
+    enabled: StrictBool = Field(False, description="evaluate in demand mode (training stays on episodes)")
+    mainline_share: Number | None = Field(
+        0.6, ge=0, le=3, description="mainline demand per highway lane as a share of its capacity; or mainline_vph [-]")
+    mainline_vph: Number | None = Field(None, ge=0, description="... per highway lane [veh/h]")
+    ramp_share: Number | None = Field(
+        0.4, ge=0, le=3, description="ramp demand as a share of the ramp's capacity (all its lanes); or ramp_vph [-]")
+    ramp_vph: Number | None = Field(None, ge=0, description="... in vehicles per hour [veh/h]")
+    av_penetration: Number | None = Field(
+        0.1, ge=0, le=1, description="share of the mainline vehicles that are AVs (drawn per vehicle); or av_count [-]")
+    av_count: Int | None = Field(None, ge=0, description="... as a number of AVs, spread over the mainline vehicles")
+    warmup: Number = Field(120.0, ge=0, description="filling the net, not measured [s]")
+    window: Number = Field(600.0, gt=0, description="the measurement window after the warm-up [s]")
+    interval: Number = Field(
+        30.0, gt=0, description="aggregation interval of the detectors (queue and flow-density samples) [s]")
+    influence_area: Number = Field(
+        457.0, gt=0, description="the merge influence area: from the acceleration lane's start this far downstream, "
+        "the acceleration lane and the two right through lanes (HCM: 1,500 ft) [m]")
+    max_avs_present: Int | None = Field(
+        None, gt=0, description="observation slots, the most AVs present at once; null: estimated from the AV demand "
+        "and the highway's length (an AV beyond it waits to enter) [-]")
+    seeds: Int = Field(5, ge=1, description="evaluation runs (seeds) of the window, by default [-]")
+
+    @model_validator(mode="after")
+    def _window_of_steps(self) -> Self:
+        if self.interval > self.window:
+            raise _problem(f"must be at most the window ({self.window:g} s), got {self.interval:g} s", "interval")
+        return self
+
+
 class RewardConfig(_Section):
     phi: Annotated[Angle | tuple[Angle, ...], WrapValidator(_angles)] = Field(
         0.0, description="SVO angle, one for all AVs or one per AV: 0 egoistic, pi/4 altruistic, pi/2 fully [rad]")
@@ -651,6 +692,7 @@ class Config(_Section):
     av: AVConfig = Field(default_factory=AVConfig)
     observation: ObservationConfig = Field(default_factory=ObservationConfig)
     reward: RewardConfig = Field(default_factory=RewardConfig)
+    demand: DemandConfig = Field(default_factory=DemandConfig)
     train: TrainConfig = Field(default_factory=TrainConfig)
     evaluate: EvaluateConfig = Field(default_factory=EvaluateConfig)
     source: StrictStr | None = Field(None, exclude=True, description="the YAML file this came from, if any")

@@ -133,6 +133,7 @@ class MergeEnv(ParallelEnv):
         # Collisions of these classes end the episode (the paper's rule).
         self._stop_on = frozenset({KIND_AV, KIND_MERGER}) if config.sim.on_collision == "end" else frozenset()
         self._closed = False  # close() released the process's SUMO slot: this env cannot run again
+        self.last_summary: dict[str, Any] | None = None  # the summary of the episode that ended last
 
     def new_tracker(self, record: bool = False) -> EpisodeTracker:
         return EpisodeTracker(self.zone, self.chainage, record=record, cut_in_window=self.cfg.sim.cut_in_window)
@@ -169,6 +170,7 @@ class MergeEnv(ParallelEnv):
         if self.cfg.sim.outputs:
             self._pending_outputs = (seed, folder)
         self.agents = list(self.possible_agents)
+        self.last_summary = None
         snap = self.session.snapshot()
         rows = snap.rows_of(self.possible_agents)
         self._target = np.where(rows >= 0, snap.speed[np.maximum(rows, 0)], 0.0)
@@ -222,6 +224,7 @@ class MergeEnv(ParallelEnv):
         if not self.agents:
             # ended_by None: nothing cut the episode, every AV's own one ended (crashed or left the net).
             summary = self.episode_summary(snap, stuck=status.stuck, ended_by=ended_by or "agents_done")
+            self.last_summary = summary
             for a in acting:
                 infos[a]["episode"] = summary
         return obs, rew, term, trunc, infos

@@ -176,6 +176,10 @@ class VelocityMapper:
         self._written = [np.zeros(0, dtype=np.intp)] * self.shape[0]
         self._t = self.shape[0] - 1
 
+    def clear(self, agent: int) -> None:
+        """Zero one agent's stack (its slot taken over by another agent)."""
+        self._buf[agent] = 0
+
     def observation(self, agent: int) -> np.ndarray:
         """(F, C, H, W) stack of `agent`, oldest to newest: a read-only view valid until the next update."""
         t = self._t

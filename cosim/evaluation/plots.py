@@ -105,7 +105,8 @@ def add_caption(fig: Figure, text: str) -> None:
 
 
 def bars(summaries: Mapping[str, Mapping[str, Mapping[str, float]]], path: Path,
-         metrics: Sequence[str] = BAR_METRICS, caption: str = "") -> Path:
+         metrics: Sequence[str] = BAR_METRICS, caption: str = "",
+         title: str = "Evaluation: mean per episode with its 95% interval") -> Path:
     """One panel per metric (safety, merging, distance and the flow metrics), one bar per run, error bars =
     the confidence interval; the runs are named under the bars."""
     fig = Figure(figsize=(2.6 * len(metrics), 3.6), layout="constrained")
@@ -124,7 +125,7 @@ def bars(summaries: Mapping[str, Mapping[str, Mapping[str, float]]], path: Path,
         ax.set_ylabel(metric)
         if "%" in metric:
             ax.set_ylim(0, 105)
-    fig.suptitle("Evaluation: mean per episode with its 95% interval")
+    fig.suptitle(title)
     add_caption(fig, caption)
     return save(fig, path)
 

@@ -49,9 +49,11 @@ from tqdm import tqdm
 
 from cosim.config import EVAL_SEED_START, Config, load_config
 from cosim.environment.control import Action
+from cosim.environment.demand_env import DemandEnv
 from cosim.environment.merge_env import MergeEnv
 from cosim.environment.policies import POLICIES
 from cosim.errors import ConfigError, CosimError, EpisodeError, check_at_least
+from cosim.evaluation.flow import demand_setting, demand_summary, run_row
 from cosim.evaluation.store import config_hash, save_trajectory, scenario_hash, summarize_evaluation
 from cosim.files import AppendCsv, FolderLock, FolderState, atomic_write_text, read_csv
 from cosim.progress import Heartbeat
@@ -167,24 +169,24 @@ class Runner:
         recorder = env.new_tracker(record=True) if seed in self.job.record else None
         if recorder is not None:
             recorder.observe(env.snapshot)
-        returns = dict.fromkeys(env.possible_agents, 0.0)
-        infos: dict[str, Any] = {}
+        returns: dict[str, float] = {}  # of every agent that acted (in demand mode, AVs come and go)
         while env.agents:
             actions = act(obs)
             if view is not None:
                 view.decide(actions)
-            obs, rewards, _, _, infos = env.step(actions)
+            obs, rewards, _, _, _ = env.step(actions)
             for a, r in rewards.items():
-                returns[a] += r
+                returns[a] = returns.get(a, 0.0) + r
             if recorder is not None:
                 recorder.observe(env.snapshot, actions if env.session.drive_avs else None)
             keep_alive()
         if view is not None:
             view.stop()
         env.flush_outputs()
-        summary = next(iter(infos.values()))["episode"]  # every agent's last info carries it
-        row = {"seed": seed, "policy": self.job.policy.name, **summary,
-               "av_return": float(np.mean(list(returns.values())))}
+        row = {"seed": seed, "policy": self.job.policy.name, **env.last_summary,
+               "av_return": float(np.mean(list(returns.values()))) if returns else math.nan}
+        if isinstance(env, DemandEnv):
+            row.update(run_row(env))
         if view is not None and view.video:
             title = f"{self.job.policy.name}, episode seed {seed}"
             self.video = view.write(Path(self.job.video_dir) / f"video_seed_{seed}", title)
@@ -202,8 +204,9 @@ class Runner:
         self.env.close()
 
 
-def _make_env(config: dict[str, Any]) -> MergeEnv:
-    return MergeEnv(load_config(config))
+def _make_env(config: dict[str, Any]) -> MergeEnv | DemandEnv:
+    cfg = load_config(config)
+    return DemandEnv(cfg) if cfg.demand.enabled else MergeEnv(cfg)
 
 
 _RUNNER: Runner | None = None  # a worker process's runner, built at its first episode
@@ -274,6 +277,8 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
     check_counts(episodes, workers, trajectories, videos=videos)
     out_dir = Path(out_dir).resolve()
     cfg = load_config(cfg, {**policy.overrides, "sim.outputs": True, "sim.output_dir": str(out_dir / "sumo")})
+    if cfg.demand.enabled:  # a run of minutes: its figures are the flow's, not per-episode trajectories or videos
+        trajectories = videos = 0
     identity = policy.identity()
     where = setting(cfg, overrides)
     meta = {"policy": policy.name, "checkpoint": identity["checkpoint"], "greedy": identity["greedy"],
@@ -309,6 +314,8 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
         summary = {**meta, "episodes": len(rows), "first_seed": seed, "requested_episodes": episodes,
                    "confidence": confidence, "metrics": metrics,
                    "distance_check_max_m": max(checks) if checks else math.nan, "setting": where}
+        if cfg.demand.enabled:
+            summary["demand"] = {**demand_setting(cfg), **demand_summary(rows, metrics)}
         atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2, allow_nan=True) + "\n")
         if checks and max(checks) > 0.5:
             log.warning("our distances and SUMO's tripinfo differ by up to %.2f m", max(checks))
@@ -316,7 +323,12 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
         if plots:
             from cosim.evaluation.plots import plot_evaluation  # matplotlib only when plotting
 
-            figures = plot_evaluation(out_dir, out_dir / "plots", label=policy.name, rows=rows)
+            if cfg.demand.enabled:
+                from cosim.evaluation.flow_plots import plot_demand
+
+                figures = plot_demand(out_dir, out_dir / "plots", policy.name, [int(r["seed"]) for r in rows])
+            else:
+                figures = plot_evaluation(out_dir, out_dir / "plots", label=policy.name, rows=rows)
         from cosim.evaluation.compare import evaluation_report  # the comparison's report, of one evaluation
 
         evaluation_report(out_dir, policy.name, figures)

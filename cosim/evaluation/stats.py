@@ -42,6 +42,25 @@ SUMMARY_METRICS: dict[str, tuple[str, float]] = {
     "throughput [veh/h]": ("throughput_vph", 1.0),
     "time loss [s]": ("time_loss", 1.0),
 }
+# A demand run's window (cosim.evaluation.flow.window_metrics), one row per seed: t-intervals over the seeds.
+FLOW_METRICS: dict[str, tuple[str, float]] = {
+    "throughput, total [veh/h]": ("throughput_total_vph", 1.0),
+    "throughput, mainline [veh/h]": ("throughput_mainline_vph", 1.0),
+    "throughput, ramp [veh/h]": ("throughput_ramp_vph", 1.0),
+    "ramp queue, mean [veh]": ("ramp_queue_mean_veh", 1.0),
+    "ramp queue, max [veh]": ("ramp_queue_max_veh", 1.0),
+    "ramp queue, mean [m]": ("ramp_queue_mean_m", 1.0),
+    "ramp queue, max [m]": ("ramp_queue_max_m", 1.0),
+    "delay per vehicle [s]": ("delay_mean_s", 1.0),
+    "delay, ramp vehicles [s]": ("delay_ramp_s", 1.0),
+    "total delay [veh h]": ("delay_total_vehh", 1.0),
+    "total time spent [veh h]": ("time_spent_vehh", 1.0),
+    "distance per vehicle [m]": ("distance_mean_m", 1.0),
+    "density, merge influence area [veh/km/ln]": ("density_vkmln", 1.0),
+    "merge success, per merging vehicle [%]": ("merge_rate_pct", 1.0),
+    "crash, per merging vehicle [%]": ("crash_rate_pct", 1.0),
+    "collisions [per window]": ("collisions", 1.0),
+}
 # Labels of SUMMARY_METRICS whose column is 0/1 per episode: Wilson score intervals, not t-intervals.
 RATE_METRICS: frozenset[str] = frozenset(label for label, (_, scale) in SUMMARY_METRICS.items() if scale == 100.0)
 
@@ -89,12 +108,13 @@ def rate_ci(values: Iterable[float], confidence: float = 0.95) -> Interval:
 
 
 def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95,
-              metrics: Mapping[str, tuple[str, float]] = SUMMARY_METRICS) -> dict[str, dict[str, float | int]]:
-    """Metric label -> {mean, ci_low, ci_high, n} over the episodes; metrics missing from the rows are left out.
+              metrics: Mapping[str, tuple[str, float]] | None = None) -> dict[str, dict[str, float | int]]:
+    """Metric label -> {mean, ci_low, ci_high, n} over the episodes (or a demand run's seeds); metrics missing from
+    the rows are left out (`metrics`: SUMMARY_METRICS and FLOW_METRICS by default).
 
     Rates (`RATE_METRICS`) get Wilson score intervals, every other metric a t-interval (module doc)."""
     out = {}
-    for label, (column, scale) in metrics.items():
+    for label, (column, scale) in (metrics or {**SUMMARY_METRICS, **FLOW_METRICS}).items():
         if not any(column in r for r in rows):
             continue
         values = column_of(rows, column)
@@ -133,7 +153,7 @@ def _cell(stats: Mapping[str, float] | None) -> str:
 def format_table(summaries: Mapping[str, Mapping[str, Mapping[str, float]]], episodes: Mapping[str, int],
                  markdown: bool = False, confidence: float = 0.95) -> str:
     """One row per metric, one column per run: 'mean [CI low, CI high]' (plain text or Markdown)."""
-    labels = [label for label in SUMMARY_METRICS if any(label in s for s in summaries.values())]
+    labels = [label for label in {**SUMMARY_METRICS, **FLOW_METRICS} if any(label in s for s in summaries.values())]
     header = [f"metric (mean [{confidence:.0%} CI])", *(f"{run} (n={episodes[run]})" for run in summaries)]
     rows = [[label, *(_cell(s.get(label)) for s in summaries.values())] for label in labels]
     if markdown:

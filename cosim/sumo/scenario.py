@@ -44,8 +44,9 @@ def av_id(i: int) -> str:
 
 
 def kind_of(vid: str) -> int:
-    """Vehicle class from its id: ours are `av_*` and `merger`; anything else (inflow, user routes) is an HV."""
-    if vid == MERGER_ID:
+    """Vehicle class from its id: ours are `av_*` and `merger` (`merger_K`: the ramp's vehicles in demand mode);
+    anything else (inflow, user routes) is an HV."""
+    if vid == MERGER_ID or vid.startswith(MERGER_ID + "_"):
         return KIND_MERGER
     return KIND_AV if vid.startswith("av_") else KIND_HV
 
@@ -271,8 +272,9 @@ def plan_episode(cfg: Config, net: Net, seed: int) -> Plan:
     return Plan(sorted(planner.plan, key=lambda sp: (sp.route, -sp.pos)), planner.flows)
 
 
-def _vtype(vid: str, drv: DriverConfig, tau: float, sigma: float, speed_factor: float,
-           max_speed: float | None = None) -> str:
+def vtype_xml(vid: str, drv: DriverConfig, tau: float, sigma: float, speed_factor: float,
+              max_speed: float | None = None) -> str:
+    """A human driver's `<vType>` (`drv` resolved: its max_speed in m/s)."""
     lc = "".join(f" {k}={quoteattr(str(v))}" for k, v in drv.lc_params.items())
     # speedDev 0: the drawn factor is the driver's, SUMO must not draw another around it.
     return (
@@ -284,35 +286,38 @@ def _vtype(vid: str, drv: DriverConfig, tau: float, sigma: float, speed_factor: 
     )
 
 
+def av_vtype_xml(cfg: Config) -> str:
+    """The AVs' `<vType id="av">`: driven by the env (speed mode 0), it only gives size and nominal limits; with
+    `sim.av_driver: sumo` (the all-human baseline) an average HV's."""
+    av, hv = cfg.av, cfg.hv
+    if cfg.sim.av_driver == "sumo":
+        return vtype_xml("av", hv, *(float(np.mean(r)) for r in (hv.tau_range, hv.sigma_range, hv.speed_factor)))
+    return (f'  <vType id="av" accel="{av.accel}" decel="{av.decel}" emergencyDecel="{av.decel}"'
+            f' maxSpeed="{av.max_speed}" length="{av.length}" width="{av.width}" speedFactor="1" speedDev="0"'
+            f' sigma="0" color="0,200,0"/>\n')
+
+
+def routes_xml(desc: NetDescription) -> str:
+    return "".join(f'  <route id="{name}" edges="{" ".join(edges)}"/>\n' for name, edges in route_ids(desc).items())
+
+
 def write_episode(plan: Plan, cfg: Config, desc: NetDescription, path: Path) -> None:
     """Write `plan` as a SUMO route file; `cfg` resolved on the net (`resolve(cfg, net).config`, the env's)."""
-    av = cfg.av
-    parts = ["<routes>\n"]
+    parts = ["<routes>\n", av_vtype_xml(cfg), routes_xml(desc)]
     hv = cfg.hv
-    if cfg.sim.av_driver == "sumo":  # the all-human baseline: AVs drive like (average) HVs
-        parts.append(_vtype("av", hv, *(float(np.mean(r)) for r in (hv.tau_range, hv.sigma_range, hv.speed_factor))))
-    else:
-        # AVs are driven by the env (speed mode 0); their vType only gives size and nominal limits.
-        parts.append(
-            f'  <vType id="av" accel="{av.accel}" decel="{av.decel}" emergencyDecel="{av.decel}"'
-            f' maxSpeed="{av.max_speed}" length="{av.length}" width="{av.width}" speedFactor="1" speedDev="0"'
-            f' sigma="0" color="0,200,0"/>\n'
-        )
-    for name, edges in route_ids(desc).items():
-        parts.append(f'  <route id="{name}" edges="{" ".join(edges)}"/>\n')
     for sp in plan.vehicles:
         if sp.kind == KIND_AV:
             vtype = "av"
         else:
             vtype = f"t_{sp.vid}"
             drv = cfg.merger if sp.kind == KIND_MERGER else hv
-            parts.append(_vtype(vtype, drv, sp.tau, sp.sigma, sp.speed_factor, sp.max_speed))
+            parts.append(vtype_xml(vtype, drv, sp.tau, sp.sigma, sp.speed_factor, sp.max_speed))
         parts.append(
             f'  <vehicle id="{sp.vid}" type="{vtype}" route="{sp.route}" depart="0" departLane="{sp.lane}"'
             f' departPos="{sp.pos:.3f}" departSpeed="{sp.speed:.3f}" insertionChecks="none"/>\n'
         )
     for f in plan.flows:
-        parts.append(_vtype(f"t_{f.fid}", hv, f.tau, float(np.mean(hv.sigma_range)), f.speed_factor))
+        parts.append(vtype_xml(f"t_{f.fid}", hv, f.tau, float(np.mean(hv.sigma_range)), f.speed_factor))
         rate = f'period="{f.period:.4f}"' if f.period is not None else f'probability="{f.probability:.6f}"'
         speed = f.speed if isinstance(f.speed, str) else f"{f.speed:.3f}"
         parts.append(

@@ -278,7 +278,12 @@ class SumoSession:
             self._commanded.pop(vid, None)
             self._static.pop(vid, None)
 
+    def pending(self) -> tuple[str, ...]:
+        """Vehicles whose departure time has come but that SUMO could not insert yet (its insertion backlog)."""
+        return tuple(self._sumo.simulation.getPendingVehicles())
+
     # -- sumo-gui -----------------------------------------------------------------------------------
+
     def label(self, vid: str, text: str) -> None:
         """With a `Gui`: show `text` above vehicle `vid` in sumo-gui (a vehicle not on the road is skipped)."""
         if self.gui is not None and vid in self._static:

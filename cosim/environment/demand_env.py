@@ -1,0 +1,315 @@
+"""The on-ramp merge under traffic demand, over minutes, as a PettingZoo ParallelEnv (`demand:` of the config).
+
+Contract: the config is resolved on the net as in `MergeEnv`, then its demand (`cosim.sumo.demand`): each `reset(seed)`
+plans the run's vehicles (exponential headways on every highway lane and the ramp, a share of the mainline ones
+AVs, `warmup + window` seconds) and starts SUMO with the window's detectors (`cosim.sumo.flow_outputs`).
+`possible_agents` names every AV a run can release, `av_0 .. av_{max_avs-1}` in order of departure, never reused;
+an AV is an agent from the decision after it entered to the one at which it left the net or crashed, and its
+VelocityMap lives in one of `demand.slots` observation slots, the most present at once (more raise `ConfigError`
+naming `demand.max_avs_present`). Agents act with the 5 meta-actions, every one each decision, and earn the SVO
+reward of `cosim.environment.reward` (the merging vehicles count among the others where observed, each ramp
+vehicle's merge term on the step it reaches a through lane). A collision takes the vehicles involved off the road
+after its decision step (an AV in it terminates) and the run goes on. Between AVs, when none is present, the env
+simulates on by itself, so `agents` is empty only once the run reaches its horizon, where every live agent is
+truncated. Then SUMO is closed, its outputs parsed (`flow_outputs`) and, with the run's record
+(`cosim.environment.flow_record.FlowRecorder`, also in `record.npz`), kept for the metrics
+(`cosim.evaluation.flow.window_metrics`); `last_summary` holds the run's summary (the last step's infos carry it
+too). A finished agent's last observation is zeros (its slot may serve an AV that entered in the same step).
+With `sim.av_driver: sumo` SUMO drives the AVs (the all-human baseline) and actions are ignored.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import gymnasium
+import numpy as np
+from pettingzoo import ParallelEnv
+
+from cosim.config import Config, check_seed
+from cosim.environment.control import N_ACTIONS, decide
+from cosim.environment.episode import MergeZone
+from cosim.environment.flow_record import FlowRecorder
+from cosim.environment.merge_env import ActionError, checked_action
+from cosim.environment.reward import StepChange, svo_rewards, utility_terms, weighted_utility
+from cosim.environment.velocity_map import VelocityMapper, rasterize_road
+from cosim.errors import ConfigError
+from cosim.sumo.demand import plan_demand, resolve_demand, write_demand
+from cosim.sumo.flow_outputs import FlowOutputs, flow_output_args, flow_sites, read_flow_outputs
+from cosim.sumo.net import load_net
+from cosim.sumo.resolve import resolve
+from cosim.sumo.scenario import av_id, kind_of
+from cosim.sumo.session import Gui, SumoSession
+from cosim.sumo.snapshot import KIND_AV, KIND_MERGER, Snapshot
+from cosim.workers import run_folder
+
+log = logging.getLogger(__name__)
+
+
+class DemandEnv(ParallelEnv):
+    metadata = {"name": "cosim_merge_demand_v0", "render_modes": [], "is_parallelizable": True}
+
+    def __init__(self, config: Config, render_mode: str | None = None, gui: Gui | None = None) -> None:
+        if render_mode is not None:
+            raise ValueError(f"render_mode: demand mode renders nothing, got {render_mode!r}")
+        self.render_mode = render_mode
+        self.net = load_net(config.net.file, config.net.description)
+        resolved = resolve(config, self.net)
+        self.cfg = config = resolved.config
+        self.resolution_notes = resolved.notes
+        for note in resolved.notes:
+            log.warning("%s", note)
+        if isinstance(config.reward.phi, tuple):
+            raise ConfigError("reward.phi: one angle for every AV in demand mode (AVs come and go), got a list")
+        self.demand = resolve_demand(config, self.net)
+        self.road, self.chainage = self.net.road, self.net.chainage
+        self.zone = MergeZone.from_net(self.net)
+        self.sites = flow_sites(self.net, config.demand.influence_area)
+        self.possible_agents = [av_id(i) for i in range(self.demand.max_avs)]
+        self.agents: list[str] = []
+        self.mapper = VelocityMapper(config.observation, rasterize_road(self.road.lane_shapes()),
+                                     max(self.demand.slots, 1))
+        self._obs_space = gymnasium.spaces.Box(low=0, high=self.mapper.high, shape=self.mapper.shape,
+                                               dtype=self.mapper.dtype)
+        self._act_space = gymnasium.spaces.Discrete(N_ACTIONS)
+        self.max_steps = max(1, round(self.demand.horizon / config.sim.decision_period))
+        self.session = SumoSession(Path(config.net.file), config.sim.step_length, self.road.index_of, kind_of,
+                                   config.sim.sumo_args, config.sim.collision_mingap_factor,
+                                   drive_avs=config.sim.av_driver == "env", gui=gui)
+        self._phi = float(config.reward.phi)
+        self._next_seed = config.sim.seed
+        self._tmp: Path | None = None
+        self._snap: Snapshot | None = None
+        self._closed = False
+        self.last_outputs: FlowOutputs | None = None  # SUMO's outputs of the last finished run
+        self.last_record: dict[str, np.ndarray] | None = None  # ... and its record
+        self.last_summary: dict[str, Any] | None = None
+        self.sumo_outputs: dict[int, Any] = {}  # the episode envs' per-episode outputs: none here
+
+    # -- PettingZoo API -----------------------------------------------------------------------------
+    def observation_space(self, agent: str) -> gymnasium.spaces.Box:
+        return self._obs_space
+
+    def action_space(self, agent: str) -> gymnasium.spaces.Discrete:
+        return self._act_space
+
+    @property
+    def snapshot(self) -> Snapshot:
+        if self._snap is None:
+            raise RuntimeError("no snapshot before reset()")
+        return self._snap
+
+    @property
+    def route_file(self) -> Path:
+        if self._tmp is None:
+            raise RuntimeError("no route file before reset()")
+        return self._tmp / "demand.rou.xml"
+
+    def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        if self._closed:
+            raise RuntimeError("reset() after close(): this env is closed; make a new one")
+        seed = check_seed("seed", self._next_seed if seed is None else seed)
+        self._next_seed = seed + 1
+        self.episode_seed = seed
+        if self._tmp is None:
+            self._tmp = Path(tempfile.mkdtemp(prefix="env_", dir=run_folder()))
+        write_demand(plan_demand(self.cfg, self.net, seed), self.cfg, self.net.desc, self.route_file)
+        root = Path(self.cfg.sim.output_dir) if self.cfg.sim.output_dir else self._tmp / "outputs"
+        self.out_dir = root / f"run_{seed}"
+        d = self.demand
+        self.session.load(self.route_file, seed, flow_output_args(self.out_dir, self.sites, d.warmup, d.horizon,
+                                                                   self.cfg.demand.interval))
+        self.recorder = FlowRecorder(self.zone, self.chainage, (d.warmup, d.horizon))
+        self.steps, self.slot, self.gone = 0, {}, set()
+        self._target: dict[str, float] = {}  # [m/s] each AV's target speed
+        self._merged: set[str] = set()
+        self.agents = []
+        self.mapper.reset()
+        self.last_outputs = self.last_record = self.last_summary = None
+        snap = self.session.snapshot()
+        self.recorder.observe(snap, self.session.pending())
+        self._snap = snap
+        self._admit(snap)
+        self._update_maps(snap)
+        infos: dict[str, dict] = {a: {"seed": seed} for a in self.agents}
+        if not self.agents:
+            self._idle_until_agents(infos)
+        if self.steps >= self.max_steps:  # no AV in the whole run
+            self._finish(infos)
+        return {a: self._obs(a) for a in self.agents}, infos
+
+    def step(self, actions: Mapping[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        if self._snap is None:
+            raise RuntimeError("step() after close(): this env is closed; make a new one" if self._closed
+                               else "step() before reset()")
+        acting = list(self.agents)
+        actions = self._checked(actions, acting)
+        prev = self._snap
+        snap, rewards, crashed = self._decision(prev, acting, actions)
+        obs, rew, term, trunc, infos = {}, {}, {}, {}, {}
+        at_end = self.steps >= self.max_steps
+        for a in acting:
+            r = snap.row_of(a)
+            gone = r < 0 or a in crashed
+            term[a], trunc[a] = gone, at_end and not gone
+            rew[a] = rewards.get(a, 0.0)
+            infos[a] = {"crashed": a in crashed}
+        live = [a for a in acting if not (term[a] or trunc[a])]
+        for a in acting:
+            if term[a] or trunc[a]:
+                self._release(a)
+        new = [] if at_end else self._admit(snap)
+        self.agents = live + new
+        self._update_maps(snap)
+        for a in new:
+            rew[a], term[a], trunc[a], infos[a] = 0.0, False, False, {}
+        if not self.agents and not at_end:
+            self._idle_until_agents(infos, rew, term, trunc)
+        if self.steps >= self.max_steps and self.last_summary is None:
+            self._finish(infos)
+        obs = {a: self._obs(a) for a in set(acting) | set(self.agents)}
+        return obs, rew, term, trunc, infos
+
+    # -- the decision -------------------------------------------------------------------------------
+    def _checked(self, actions: Mapping[str, Any], acting: list[str]) -> dict[str, int]:
+        if not isinstance(actions, Mapping):
+            raise ActionError(f"step(): expected a dict of agent -> action, got {type(actions).__name__}")
+        missing = [a for a in acting if a not in actions]
+        if missing:
+            raise ActionError(f"step(): no action for live agents {missing}")
+        return {a: checked_action(a, actions[a]) for a in acting}
+
+    def _decision(self, prev: Snapshot, acting: list[str], actions: Mapping[str, int]
+                  ) -> tuple[Snapshot, dict[str, float], set[str]]:
+        """Apply the actions, simulate one decision period, read the new state; (snapshot, rewards, crashed)."""
+        av = self.cfg.av
+        rows = prev.rows_of(acting)
+        present = [a for a, r in zip(acting, rows, strict=True) if r >= 0]
+        targets: dict[str, float] = {}
+        lane_changed = dict.fromkeys(acting, False)
+        invalid = dict.fromkeys(acting, False)
+        if present and self.session.drive_avs:
+            r = prev.rows_of(present)
+            d = decide(np.array([actions[a] for a in present]), prev.lane[r], self.zone.through[prev.edge[r]],
+                       np.array([self._target.get(a, prev.speed[k]) for a, k in zip(present, r, strict=True)]), av)
+            for a, speed, change, bad in zip(present, d.target_speed, d.lane_change, d.invalid, strict=True):
+                self._target[a] = targets[a] = float(speed)
+                if change:
+                    self.session.change_lane(a, int(change))
+                lane_changed[a], invalid[a] = bool(change), bool(bad)
+        self.session.advance(self.cfg.steps_per_decision, targets, av.accel, av.decel, av.max_speed)
+        self.steps += 1
+        snap = self.session.snapshot()
+        self.recorder.observe(snap, self.session.pending())
+        rewards = self._rewards(prev, snap, acting, lane_changed, invalid)
+        crashed = {snap.ids[i] for i in np.flatnonzero(snap.crashed)}
+        if crashed:  # off the road after the step: the run goes on (counted by the recorder)
+            self.session.remove(sorted(crashed))
+        self._snap = snap
+        return snap, rewards, crashed
+
+    def _rewards(self, prev: Snapshot, snap: Snapshot, acting: list[str], lane_changed: dict[str, bool],
+                 invalid: dict[str, bool]) -> dict[str, float]:
+        before = prev.rows_of(snap.ids)
+        seen = before >= 0
+        prev_d, prev_v = np.zeros(len(snap)), snap.speed.copy()
+        prev_d[seen], prev_v[seen] = prev.distance[before[seen]], prev.speed[before[seen]]
+        v_lane, v_invalid = np.zeros(len(snap), bool), np.zeros(len(snap), bool)
+        for a in acting:
+            r = snap.row_of(a)
+            if r >= 0:
+                v_lane[r], v_invalid[r] = lane_changed[a], invalid[a]
+        through = self.zone.on_through_lane(snap.edge, snap.lane)
+        merged_now = (snap.kind == KIND_MERGER) & through & ~snap.crashed & ~np.isin(snap.ids, list(self._merged))
+        self._merged.update(snap.ids[i] for i in np.flatnonzero(merged_now))
+        av = self.cfg.av
+        raw = utility_terms(StepChange(snap.distance - prev_d, snap.speed - prev_v, v_lane, v_invalid, snap.crashed,
+                                       merged_now, av.max_speed, av.accel, self.cfg.sim.decision_period))
+        utility = sum(weighted_utility(raw, self.cfg.reward).values())
+        rows = snap.rows_of(acting)
+        observed = np.zeros((len(acting), len(snap)), bool)
+        slots = np.array([self.slot.get(a, -1) for a in acting], dtype=np.int64)
+        if len(snap):
+            full = np.full(self.mapper.n_agents, -1)
+            have = slots >= 0
+            full[slots[have]] = rows[have]
+            observed[have] = self.mapper.observed(snap, full)[slots[have]]
+        reward, _, _ = svo_rewards(utility, observed, rows, -1, np.full(len(acting), self._phi))
+        return {a: float(r) for a, r in zip(acting, reward, strict=True)}
+
+    # -- agents and their observation slots ---------------------------------------------------------
+    def _admit(self, snap: Snapshot) -> list[str]:
+        """AVs in the net that are no agents yet become agents, each in a free observation slot."""
+        new = [v for v in snap.ids if kind_of(v) == KIND_AV and v not in self.slot and v not in self.gone]
+        free = sorted(set(range(self.mapper.n_agents)) - set(self.slot.values()))
+        if len(new) > len(free):
+            raise ConfigError(f"demand.max_avs_present: {len(self.slot) + len(new)} AVs present at once at t = "
+                              f"{snap.time:.0f} s, more than its {self.mapper.n_agents} observation slots; raise it")
+        for a, k in zip(new, free, strict=False):
+            self.slot[a] = k
+            self.mapper.clear(k)  # a slot another AV held: none of its frames in this one's stack
+            self._target[a] = float(snap.speed[snap.row_of(a)])
+        return new
+
+    def _release(self, agent: str) -> None:
+        self.slot.pop(agent, None)
+        self._target.pop(agent, None)
+        self.gone.add(agent)
+
+    def _update_maps(self, snap: Snapshot) -> None:
+        rows = np.full(self.mapper.n_agents, -1)
+        for a, k in self.slot.items():
+            rows[k] = snap.row_of(a)
+        self.mapper.update(snap, rows)
+
+    def _obs(self, agent: str) -> np.ndarray:
+        k = self.slot.get(agent)
+        return self.mapper.observation(k) if k is not None else np.zeros(self.mapper.shape, self.mapper.dtype)
+
+    def _idle_until_agents(self, infos: dict, rew: dict | None = None, term: dict | None = None,
+                           trunc: dict | None = None) -> None:
+        """No AV present: simulate on until one enters (it becomes an agent) or the horizon."""
+        while not self.agents and self.steps < self.max_steps:
+            snap, _, _ = self._decision(self._snap, [], {})
+            if self.steps < self.max_steps:
+                self.agents = self._admit(snap)
+            self._update_maps(snap)
+        for a in self.agents:
+            infos[a] = {}
+            if rew is not None:
+                rew[a], term[a], trunc[a] = 0.0, False, False
+
+    def _finish(self, infos: dict) -> None:
+        """The horizon: SUMO closes its outputs; parse them, keep the record, and summarise the run."""
+        self.session.end_simulation()
+        d = self.demand
+        self.last_outputs = read_flow_outputs(self.out_dir, d.warmup, d.horizon)
+        self.last_record = {**self.recorder.arrays(), "exit_lanes": np.asarray(len(self.sites.exit_lanes)),
+                            "area_ids": np.asarray([a.did for a in self.sites.influence], dtype=str),
+                            "area_lengths": np.asarray([a.length for a in self.sites.influence])}
+        np.savez_compressed(self.out_dir / "record.npz", **self.last_record)
+        self.last_summary = {"seed": self.episode_seed, "length": self.steps,
+                             "avs_released": len(self.gone), "out_dir": str(self.out_dir)}
+        for info in infos.values():
+            info["episode"] = self.last_summary
+
+    def flush_outputs(self) -> None:
+        """The episode envs' hook: a demand run's outputs are complete at its horizon already."""
+
+    def close(self) -> None:
+        self.session.close()
+        if self._tmp is not None:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._tmp = None
+        self._snap = None
+        self._closed = True
+
+    def __del__(self) -> None:
+        session = getattr(self, "session", None)
+        if session is not None:
+            session.close()
