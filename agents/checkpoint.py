@@ -231,10 +231,18 @@ def episode_actors(nets: Mapping[str, Any], spec: Mapping[str, Any], env: Parall
         raise CheckpointError(
             f"checkpoint {path}: observations of shape {tuple(spec['obs_shape'])}, but this net/preset gives "
             f"{shape} (observation preset {env.cfg.observation.preset!r}); evaluate with the run's config")
+    if spec["n_actions"] != env.action_space(agents[0]).n:
+        raise CheckpointError(f"checkpoint {path}: trained with {spec['n_actions']} actions; this scenario has "
+                              f"{env.action_space(agents[0]).n}")
+    if spec["shared_policy"]:  # one ego-centred network serves every AV, however many the scenario has
+        nets = dict.fromkeys(agents, next(iter(nets.values())))
     missing = [a for a in agents if a not in nets]
-    if missing or spec["n_actions"] != env.action_space(agents[0]).n:
-        raise CheckpointError(f"checkpoint {path}: trained for agents {sorted(nets)} with {spec['n_actions']} "
-                              f"actions; this scenario has {agents} with {env.action_space(agents[0]).n}")
+    if missing:
+        more = ", coming and going" if len(agents) > len(nets) else ""
+        raise CheckpointError(
+            f"checkpoint {path}: one network per AV (train.shared_policy: false), for {sorted(nets)}; this scenario "
+            f"has {len(agents)} AVs ({agents[0]} .. {agents[-1]}{more}): a per-AV network serves only the AV it "
+            "was trained for; train with a shared network (the default)")
 
     def for_episode(seed: int) -> Callable[[Mapping[str, np.ndarray]], dict]:
         torch.manual_seed(seed)

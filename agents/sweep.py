@@ -45,8 +45,12 @@ BASELINES = ("idle", "scripted", "courteous", "sumo")
 
 def sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], budget_min: float,
           eval_episodes: int = 100, eval_workers: int = 2, baselines: Sequence[str] = BASELINES,
-          command: str = "", backend: Backend | None = None) -> dict[str, Any]:
-    """Run (or continue) the sweep into `out`; returns the report's data (module doc)."""
+          command: str = "", backend: Backend | None = None, demand: Config | None = None) -> dict[str, Any]:
+    """Run (or continue) the sweep into `out`; returns the report's data (module doc). `demand`: a demand config
+    (`demand.enabled`) every run and baseline is evaluated on too, `demand.seeds` runs of its window each."""
+    if demand is not None and not demand.demand.enabled:
+        raise ConfigError("--demand: that config's demand.enabled is false; give a demand config "
+                          "(e.g. configs/demand.yaml)")
     if not phis or not seeds:
         raise ConfigError("cosim sweep: give at least one --phi and one --seed")
     if budget_min <= 0:
@@ -70,7 +74,8 @@ def sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], b
         # Joined first: a cluster that cannot take the runs fails before any work is done.
         cluster = _RayRuns(backend, cfg, eval_workers) if backend.name == "ray" else None
         lock.acquire()
-        return _sweep(cfg, out, phis, seeds, budget_min, eval_episodes, eval_workers, baselines, command, cluster)
+        return _sweep(cfg, out, phis, seeds, budget_min, eval_episodes, eval_workers, baselines, command, cluster,
+                      demand)
     finally:
         if cluster is not None:
             cluster.close()
@@ -79,18 +84,23 @@ def sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], b
 
 def _sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], budget_min: float,
            eval_episodes: int, eval_workers: int, baselines: Sequence[str], command: str,
-           cluster: _RayRuns | None) -> dict[str, Any]:
+           cluster: _RayRuns | None, demand: Config | None = None) -> dict[str, Any]:
     walls: dict[str, float] = _load_walls(out)
     for name in baselines:
         t0 = time.perf_counter()
         evaluate(cfg, Baseline(name), out / "baselines" / name, episodes=eval_episodes, seed=EVAL_SEED_START,
                  workers=eval_workers, trajectories=0, plots=False)
         _add_wall(walls, f"evaluate {name}", t0)
+        if demand is not None:
+            t0 = time.perf_counter()
+            evaluate(demand, Baseline(name), out / "baselines_demand" / name, episodes=demand.demand.seeds,
+                     seed=EVAL_SEED_START, workers=eval_workers, plots=False)
+            _add_wall(walls, f"evaluate {name} in demand", t0)
     atomic_write_text(out / "walls.json", json.dumps(walls, indent=2) + "\n")
     from cosim.evaluation.report import write_report  # matplotlib only once there is something to plot
 
     result: dict[str, Any] = {}
-    args = (cfg, out, budget_min, eval_episodes, eval_workers)
+    args = (cfg, out, budget_min, eval_episodes, eval_workers, demand)
     runs = run_order(phis, seeds)
     finished = cluster.run(runs, args) if cluster is not None else (
         _train_and_evaluate(*args, phi, seed) for phi, seed in runs)
@@ -99,7 +109,8 @@ def _sweep(cfg: Config, out: Path, phis: Sequence[float], seeds: Sequence[int], 
             walls[key] = walls.get(key, 0.0) + seconds
         atomic_write_text(out / "walls.json", json.dumps(walls, indent=2) + "\n")
         # The report so far after every run: an interrupted sweep still shows what it has.
-        result = write_report(out, phis, seeds, baselines, eval_episodes, command, walls)
+        result = write_report(out, phis, seeds, baselines, eval_episodes, command, walls,
+                              demand.demand.seeds if demand is not None else 0)
     return result
 
 
@@ -165,7 +176,7 @@ def _load_walls(out: Path) -> dict[str, float]:
 
 
 def _train_and_evaluate(cfg: Config, out: Path, budget_min: float, eval_episodes: int, eval_workers: int,
-                        phi: float, seed: int, backend: str = "local") -> dict[str, float]:
+                        demand: Config | None, phi: float, seed: int, backend: str = "local") -> dict[str, float]:
     """Train (or finish training) and evaluate one run; returns the wall times [s] of what it did."""
     from agents.checkpoint import CHECKPOINT_NAME, TrainedPolicy, read_checkpoint
     from agents.train import train
@@ -187,11 +198,18 @@ def _train_and_evaluate(cfg: Config, out: Path, budget_min: float, eval_episodes
         _add_wall(walls, f"train {name}", t0)
         if result.interrupted:
             raise KeyboardInterrupt
-        shutil.rmtree(run_dir / "eval", ignore_errors=True)  # an evaluation of an earlier state of the run
+        for old in ("eval", "eval_demand"):  # evaluations of an earlier state of the run
+            shutil.rmtree(run_dir / old, ignore_errors=True)
     t0 = time.perf_counter()
     evaluate(run_cfg, TrainedPolicy(str(ckpt.resolve())), run_dir / "eval", episodes=eval_episodes,
              seed=EVAL_SEED_START, workers=eval_workers, trajectories=3, run_dir=run_dir, plots=False)
     _add_wall(walls, f"evaluate {name}", t0)
+    if demand is not None:
+        t0 = time.perf_counter()
+        evaluate(load_config(demand, {"reward.phi": phi}), TrainedPolicy(str(ckpt.resolve())),
+                 run_dir / "eval_demand", episodes=demand.demand.seeds, seed=EVAL_SEED_START, workers=eval_workers,
+                 run_dir=run_dir, plots=False)
+        _add_wall(walls, f"evaluate {name} in demand", t0)
     return walls
 
 

@@ -231,6 +231,9 @@ def _sweep_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eval-episodes", type=int, default=100, help="evaluation episodes per run and baseline")
     parser.add_argument("--eval-workers", type=int, default=2, help="evaluation worker processes")
     parser.add_argument("--baselines", nargs="*", choices=BASELINES, default=list(BASELINES))
+    parser.add_argument("--demand", default=None, metavar="CONFIG",
+                        help="also evaluate every run and baseline under this demand config's traffic (e.g. "
+                             "configs/demand.yaml, --set applies to it too); the report gets a flow table")
     parser.add_argument("--out", type=Path, default=Path("runs/sweep"), help="sweep folder (default: %(default)s); "
                         "with --backend ray on several machines, on a file system they all share")
     _backend_arguments(parser)
@@ -244,8 +247,9 @@ def _sweep(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config, config_overrides(args))
     command = "cosim sweep " + " ".join(shlex.quote(a) for a in sys.argv[2:]) if sys.argv[1:2] == ["sweep"] else ""
+    demand = load_config(args.demand, config_overrides(args)) if args.demand else None
     result = sweep(cfg, args.out, args.phi, args.seeds, args.budget_min, args.eval_episodes, args.eval_workers,
-                   args.baselines, command, Backend(args.backend, args.ray_address))
+                   args.baselines, command, Backend(args.backend, args.ray_address), demand)
     log.info("wrote %s", args.out / "report.md")
     print(format_table(result["table"], result["episodes"]))
     return 0

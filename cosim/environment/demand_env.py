@@ -288,7 +288,7 @@ class DemandEnv(ParallelEnv):
         """The horizon: SUMO closes its outputs; parse them, keep the record, and summarise the run."""
         self.session.end_simulation()
         d = self.demand
-        self.last_outputs = read_flow_outputs(self.out_dir, d.warmup, d.horizon)
+        self.last_outputs = read_flow_outputs(self.out_dir, d.warmup, d.horizon, end=self._snap.time)
         self.last_record = {**self.recorder.arrays(), "exit_lanes": np.asarray(len(self.sites.exit_lanes)),
                             "area_ids": np.asarray([a.did for a in self.sites.influence], dtype=str),
                             "area_lengths": np.asarray([a.length for a in self.sites.influence])}

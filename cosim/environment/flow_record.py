@@ -3,8 +3,9 @@ merge, the collisions, and the pictures' data (pure numpy; fed every decision).
 
 Contract: `FlowRecorder(zone, chainage, window, bins)` is fed each decision's snapshot and SUMO's insertion backlog
 (`observe(snap, pending)`, by vehicle id). It keeps: per decision the backlog on the ramp and on the highway and
-the AVs present; per ramp vehicle when it first drove on its acceleration lane and when it first reached a
-through lane (merged); every collision (each vehicle of it is counted once); a speed heatmap, the mean speed in
+the AVs present; per ramp vehicle when it first reached the merge edge (its front past the acceleration lane's
+start: on the acceleration lane, or straight onto a through lane) and when it first reached a through lane
+(merged); every collision (each vehicle of it is counted once); a speed heatmap, the mean speed in
 cells of `bins` = (time [s], chainage [m]) over the whole run; and, within the window, the merge area's points
 (time, chainage, speed, class) for a time-space diagram. `arrays()` gives all of it as numpy arrays (what
 `record.npz` holds, a few hundred kB for a 12-minute run).
@@ -33,7 +34,7 @@ class FlowRecorder:
         self.times: list[float] = []
         self.backlog: list[tuple[int, int]] = []  # (ramp, highway) vehicles waiting to enter, per decision
         self.avs_present: list[int] = []
-        self.on_accel: dict[str, float] = {}  # ramp vehicle -> when it first drove on its acceleration lane [s]
+        self.reached: dict[str, float] = {}  # ramp vehicle -> when its front first passed the acceleration lane's start
         self.merged: dict[str, float] = {}  # ramp vehicle -> when it first reached a through lane [s]
         self.collisions: list[tuple[float, str, str]] = []  # (time, collider, victim)
         self.crashed: set[str] = set()
@@ -53,8 +54,8 @@ class FlowRecorder:
         accel = (snap.edge == self.zone.merge_edge) & np.isin(snap.lane, list(self.zone.accel_lanes))
         for r in np.flatnonzero(snap.kind == KIND_MERGER):
             vid = snap.ids[r]
-            if accel[r]:
-                self.on_accel.setdefault(vid, t)
+            if s[r] >= self.chainage.merge_start:
+                self.reached.setdefault(vid, t)
             if through[r] and vid not in self.merged:
                 self.merged[vid] = t
         road = np.isfinite(s) & (through | accel)
@@ -69,14 +70,14 @@ class FlowRecorder:
                                           snap.kind[near].astype(float)], axis=1).astype(np.float32))
 
     def arrays(self) -> dict[str, np.ndarray]:
-        merge_ids = sorted(self.on_accel.keys() | self.merged.keys())
+        merge_ids = sorted(self.reached.keys() | self.merged.keys())
         with np.errstate(invalid="ignore", divide="ignore"):
             heat = np.where(self.speed_n > 0, self.speed_sum / np.maximum(self.speed_n, 1), np.nan)
         return {
             "time": np.asarray(self.times), "backlog": np.asarray(self.backlog, dtype=np.int32).reshape(-1, 2),
             "avs_present": np.asarray(self.avs_present, dtype=np.int32),
             "ramp_ids": np.asarray(merge_ids, dtype=str),
-            "ramp_on_accel": np.asarray([self.on_accel.get(v, np.nan) for v in merge_ids]),
+            "ramp_reached": np.asarray([self.reached.get(v, np.nan) for v in merge_ids]),
             "ramp_merged": np.asarray([self.merged.get(v, np.nan) for v in merge_ids]),
             "crashed": np.asarray(sorted(self.crashed), dtype=str),
             "collision_times": np.asarray([c[0] for c in self.collisions]),

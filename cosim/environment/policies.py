@@ -6,10 +6,11 @@ ones read the env's public snapshot and net geometry (they are baselines, not le
 - `scripted`, the egoistic reference: cruise at `cruise_factor` times the highway's speed limit at the merge
   (`Net.speed_limit`), keep a `headway` [s] to the leader in the AV's lane (plus the distance needed to match a
   slower leader's speed at `brake` [m/s^2]), never change lane.
-- `courteous`: scripted, except for the AV best placed to let the merging vehicle in, the nearest AV behind
+- `courteous`: scripted, except for the AV best placed to let a merging vehicle in, the nearest AV behind
   it in the lane it must enter (up to `reach` seconds at cruise speed behind) while it has not merged: that
   AV moves one lane left where the left lane has room, else slows down below the merging vehicle's speed (not
-  below `min_speed_factor` times the limit) so that a gap opens in front of it.
+  below `min_speed_factor` times the limit) so that a gap opens in front of it. Under demand, with many
+  merging vehicles, each gets its own AV (the one furthest on first).
 Positions are chainages along the highway (`cosim.sumo.net.Chainage`), so leaders on the next edge count.
 Speeds follow the net's limit, so a baseline means the same on a 60 km/h and a 130 km/h road.
 """
@@ -103,31 +104,40 @@ def courteous_policy(seed: int = 0, cruise_factor: float = 0.81, headway: float 
         cruise_speed = cruise_factor * env.net.speed_limit
         reach_m, min_speed = reach * cruise_speed, min_speed_factor * env.net.speed_limit
         actions = {a: _scripted(road, snap.row_of(a), cruise_speed, headway, brake) for a in env.agents}
-        m = np.flatnonzero(snap.kind == KIND_MERGER)
-        if m.size == 0 or road.rank[m[0]] >= 0 or not np.isfinite(road.s[m[0]]):
-            return actions  # merged or gone: everyone cruises
-        m = int(m[0])
         target = env.zone.target_rank
         rows = {a: snap.row_of(a) for a in env.agents}
-        behind = {a: road.s[m] - road.s[r] for a, r in rows.items()
-                  if r >= 0 and road.rank[r] == target and -5.0 <= road.s[m] - road.s[r] <= reach_m}
-        if not behind:
-            return actions
-        guide = min(behind, key=behind.__getitem__)
-        r = rows[guide]
-        v = float(snap.speed[r])
-        left = target + 1
-        if env.zone.rank.max() >= left:  # a lane to the left: go there if it has room
-            gap_f, v_f = road.gap_ahead(r, left, behind=snap.length[r])
-            gap_b, v_b = road.follower_gap(r, left)
-            if gap_f > 2.0 + v * headway and gap_b > 2.0 + v_b * headway + max(0.0, v_b - v) * 2.0:
-                actions[guide] = int(Action.LANE_LEFT)
-                return actions
-        if actions[guide] != int(Action.DECELERATE) and v > max(min_speed, float(snap.speed[m]) - 2.0):
-            actions[guide] = int(Action.DECELERATE)
+        # Every merging vehicle still on the ramp or its acceleration lane, the one furthest on first (under
+        # demand there are many); each gets the nearest free AV behind it in the lane it must enter.
+        waiting = [int(m) for m in np.flatnonzero(snap.kind == KIND_MERGER)
+                   if road.rank[m] < 0 and np.isfinite(road.s[m])]
+        taken: set[str] = set()
+        for m in sorted(waiting, key=lambda m: -road.s[m]):
+            behind = {a: road.s[m] - road.s[r] for a, r in rows.items() if a not in taken
+                      and r >= 0 and road.rank[r] == target and -5.0 <= road.s[m] - road.s[r] <= reach_m}
+            if not behind:
+                continue
+            guide = min(behind, key=behind.__getitem__)
+            taken.add(guide)
+            actions[guide] = _open_gap(env, road, rows[guide], m, actions[guide], headway, min_speed)
         return actions
 
     return act
+
+
+def _open_gap(env: MergeEnv, road: _Road, r: int, m: int, action: int, headway: float, min_speed: float) -> int:
+    """The guide AV (row r) makes room for merging vehicle m: one lane left where that lane has room, else
+    slower than the merging vehicle (not below `min_speed`)."""
+    snap = road.snap
+    v = float(snap.speed[r])
+    left = env.zone.target_rank + 1
+    if env.zone.rank.max() >= left:  # a lane to the left: go there if it has room
+        gap_f, _ = road.gap_ahead(r, left, behind=snap.length[r])
+        gap_b, v_b = road.follower_gap(r, left)
+        if gap_f > 2.0 + v * headway and gap_b > 2.0 + v_b * headway + max(0.0, v_b - v) * 2.0:
+            return int(Action.LANE_LEFT)
+    if action != int(Action.DECELERATE) and v > max(min_speed, float(snap.speed[m]) - 2.0):
+        return int(Action.DECELERATE)
+    return action
 
 
 POLICIES: dict[str, Callable[..., Policy]] = {

@@ -57,21 +57,39 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     episodes = {e.label: len(rows[e.label]) for e in evals}
-    merger = {label: column(r, "merger_distance") for label, r in rows.items()}
     caption = plots.evaluation_caption([e.summary for e in evals])
-    # The acceleration lane's marks where every run has the same (net, ramp start positions).
-    marks = [plots.accel_lane_marks(load_config(e.eval_dir / "config.yaml")) for e in evals]
-    figures = {"bars": plots.bars(metrics, out_dir / "bars.png", caption=caption),
-               "merger distance": plots.distance_histogram(merger, out_dir / "merger_distance.png",
-                                                           marks=marks[0] if marks.count(marks[0]) == len(marks)
-                                                           else None, caption=caption)}
+    # Episode evaluations get the episode figures, demand ones (`cosim evaluate` in demand mode) the flow's.
+    demand = [e for e in evals if "demand" in e.summary]
+    episodic = [e for e in evals if "demand" not in e.summary]
+    figures: dict[str, Path] = {}
+    if episodic:
+        merger = {e.label: column(rows[e.label], "merger_distance") for e in episodic}
+        # The acceleration lane's marks where every run has the same (net, ramp start positions).
+        marks = [plots.accel_lane_marks(load_config(e.eval_dir / "config.yaml")) for e in episodic]
+        figures["bars"] = plots.bars({e.label: metrics[e.label] for e in episodic}, out_dir / "bars.png",
+                                     caption=caption)
+        figures["merger distance"] = plots.distance_histogram(
+            merger, out_dir / "merger_distance.png", marks=marks[0] if marks.count(marks[0]) == len(marks) else None,
+            caption=caption)
+    if demand:
+        from cosim.evaluation.flow_plots import flow_bars
+
+        figures["traffic flow"] = flow_bars({e.label: metrics[e.label] for e in demand}, out_dir / "flow_bars.png",
+                                            caption=caption)
     logs = {e.label: [e.run_dir / "episodes.csv"] for e in evals if e.run_dir is not None}
     curves = plots.training_curves(logs, out_dir / "training_curves.png", caption=caption) if logs else None
     if curves is not None:
         figures["training curves"] = curves
     per_run: dict[str, list[Path]] = {}
     for e in tqdm(evals, desc="plots", unit="run", leave=False, disable=None):
-        per_run[e.label] = [*plots.plot_evaluation(e.eval_dir, out_dir / e.label, e.label), *video_files(e.eval_dir)]
+        if e in demand:
+            from cosim.evaluation.flow_plots import plot_demand
+
+            per_run[e.label] = plot_demand(e.eval_dir, out_dir / e.label, e.label,
+                                           [int(r["seed"]) for r in rows[e.label]])
+        else:
+            per_run[e.label] = [*plots.plot_evaluation(e.eval_dir, out_dir / e.label, e.label),
+                                *video_files(e.eval_dir)]
     result = {e.label: {**e.summary, "episodes": episodes[e.label], "metrics": metrics[e.label],
                         "eval_dir": str(e.eval_dir)} for e in evals}
     atomic_write_text(out_dir / "summary.json", json.dumps(result, indent=2) + "\n")
@@ -132,6 +150,14 @@ def _report(evals: Sequence[Evaluation], metrics: dict, episodes: dict[str, int]
              "Student t for the other metrics]. Throughput, time loss and mean speed come from SUMO's own "
              "induction loops and tripinfo output.", "",
              format_table(metrics, episodes, markdown=True, confidence=conf), ""]
+    for e in evals:
+        if "demand" in e.summary:  # a demand run's window: its demand and level of service
+            from cosim.evaluation.flow_plots import demand_caption
+
+            d = e.summary["demand"]
+            lines += [f"**{e.label}** under demand ({demand_caption(e.summary, e.label)}): level of service "
+                      f"**{d.get('level_of_service', '-')}** in the merge influence area (HCM; F where the demand "
+                      f"exceeds the capacity: {d.get('capacity', '')}).", ""]
     settings = {e.label: e.summary["setting"] for e in evals if "setting" in e.summary}
     if settings and len({json.dumps(v, sort_keys=True) for v in settings.values()}) == 1:
         lines += ["## Setting (the same for every run)", "", *setting_lines(next(iter(settings.values()))), ""]

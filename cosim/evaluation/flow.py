@@ -18,8 +18,8 @@ in demand mode; `run_row(env)` takes all of it from a `DemandEnv` after its run)
 - density in the merge influence area [veh/km/ln] (the lane-area detectors' mean vehicle number over their
   length) and its HCM level of service: A to E by density (10, 20, 28, 35 pc/mi/ln), F where the demand exceeds
   the capacity (`los`);
-- per merging vehicle (a ramp vehicle that drove onto its acceleration lane in the window): the share that
-  reached a through lane by the horizon and the share involved in a collision; and the collisions in the window.
+- per merging vehicle (a ramp vehicle that reached the merge edge in the window): the share that reached a
+  through lane by the horizon and the share involved in a collision; and the collisions in the window.
 """
 
 from __future__ import annotations
@@ -49,6 +49,8 @@ def level_of_service(density: float, over_capacity: bool) -> str:
     """The HCM level of service of a merge influence area: `density` [veh/km/ln]."""
     if over_capacity:
         return "F"
+    if not math.isfinite(density):
+        return "-"
     per_mile = density * PER_MILE
     return next((letter for letter, bound in LOS_BOUNDS if per_mile <= bound), "E")
 
@@ -116,8 +118,8 @@ def window_metrics(out: FlowOutputs, rec: Mapping[str, np.ndarray], demand: Dema
     over, why = over_capacity(demand, lanes_after)
     row.update({"density_vkmln": density, "los": level_of_service(density, over), "over_capacity": over,
                 "capacity": why})
-    on_accel, merged = rec["ramp_on_accel"], rec["ramp_merged"]
-    merging = (on_accel >= w0) & (on_accel < w1)
+    reached, merged = rec["ramp_reached"], rec["ramp_merged"]
+    merging = (reached >= w0) & (reached < w1)
     crashed = np.isin(rec["ramp_ids"], rec["crashed"])
     row.update({"merging_vehicles": int(merging.sum()),
                 "merge_rate_pct": 100.0 * float(np.mean(np.isfinite(merged[merging]))) if merging.any() else math.nan,

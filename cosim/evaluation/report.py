@@ -38,7 +38,7 @@ def phi_label(phi: float) -> str:
 
 
 def write_report(out: Path, phis: Sequence[float], seeds: Sequence[int], baselines: Sequence[str], episodes: int,
-                 command: str, walls: Mapping[str, float]) -> dict[str, Any]:
+                 command: str, walls: Mapping[str, float], demand_runs: int = 0) -> dict[str, Any]:
 
     base_rows = {b: pooled([out / "baselines" / b], EVAL_SEED_START, episodes)[0] for b in baselines}
     # The runs evaluated so far (all of them once the sweep is complete).
@@ -79,12 +79,38 @@ def write_report(out: Path, phis: Sequence[float], seeds: Sequence[int], baselin
     lines += [""]
     for title, path in figures.items():
         lines += [f"## {title}", "", f"![{title}]({path.name})", ""]
+    if demand_runs:
+        lines += _demand_section(out, phis, seeds, baselines, demand_runs, caption)
     lines += ["## Per training seed", "", _per_seed_table(run_rows, phis, seeds), "", "## Wall time", ""]
     lines += [f"- {k}: {v / 60:.1f} min" for k, v in walls.items()]
     atomic_write_text(out / "report.md", "\n".join(lines) + "\n")
     result = {"table": table, "episodes": counts, "claims": claims, "walls": dict(walls), "command": command}
     atomic_write_text(out / "sweep.json", json.dumps(result, indent=2, default=float) + "\n")
     return result
+
+
+def _demand_section(out: Path, phis: Sequence[float], seeds: Sequence[int], baselines: Sequence[str], runs: int,
+                    caption: str) -> list[str]:
+    """The flow under traffic demand: every baseline and angle over its seeds' windows (each training seed's
+    policy on the same `runs` demand seeds, pooled), the table and the flow bars."""
+    from cosim.evaluation.flow_plots import flow_bars
+    from cosim.evaluation.stats import FLOW_METRICS
+
+    rows = {b: pooled([out / "baselines_demand" / b], EVAL_SEED_START, runs)[0] for b in baselines}
+    rows.update({phi_label(p): got for p in phis
+                 if (got := [r for s in seeds
+                             for r in pooled([out / "runs" / run_name(p, s) / "eval_demand"], EVAL_SEED_START,
+                                             runs)[0]])})
+    rows = {k: v for k, v in rows.items() if v}
+    if not rows:
+        return []
+    table = {k: summarize(v, metrics=FLOW_METRICS) for k, v in rows.items()}
+    bars = flow_bars(table, out / "flow_demand.png", caption=caption)
+    return ["## Traffic flow under demand", "",
+            f"Each baseline and angle in `cosim evaluate --config DEMAND` (a {runs}-seed window each, per training "
+            "seed for the angles, pooled); means with 95% t-intervals over the windows.", "",
+            format_table(table, {k: len(v) for k, v in rows.items()}, markdown=True), "",
+            f"![Traffic flow under demand]({bars.name})", ""]
 
 
 def _ego_alt(phi_rows: Mapping[float, list]) -> dict[str, list]:

@@ -9,7 +9,7 @@ Contract:
   start `influence_area` metres downstream, along the lanes' connections); and an edgeData over the window.
 - `flow_output_args(folder, sites, warmup, horizon, interval)` writes `folder/flow.add.xml` and returns SUMO's
   options for it and for tripinfo (unfinished and undeparted trips included).
-- `read_flow_outputs(folder, warmup, horizon)` -> `FlowOutputs` over the window [warmup, horizon] [s]: the loops'
+- `read_flow_outputs(folder, warmup, horizon, end)` -> `FlowOutputs` over the window [warmup, horizon] [s]: the loops'
   passages, the detectors' intervals that lie in the window, the edgeData totals, every trip. SUMO completes the
   files at close or reload; a missing or truncated one raises `SimulationError` naming it.
 """
@@ -140,7 +140,9 @@ def _root(path: Path) -> ET.Element:
         raise SimulationError(f"SUMO output {path}: incomplete or not XML ({exc})") from None
 
 
-def read_flow_outputs(folder: Path, warmup: float, horizon: float) -> FlowOutputs:
+def read_flow_outputs(folder: Path, warmup: float, horizon: float, end: float | None = None) -> FlowOutputs:
+    """`end`: the simulation's last time [s] (a step past `horizon` where the run began a step in), from which
+    an undeparted vehicle's waiting is counted back to when it wanted to enter."""
     out = FlowOutputs()
     for e in _root(folder / PASSAGES).iter("instantOut"):
         t = float(e.get("time", "nan"))
@@ -157,7 +159,7 @@ def read_flow_outputs(folder: Path, warmup: float, horizon: float) -> FlowOutput
         depart, delay = float(t.get("depart", "-1")), float(t.get("departDelay", "0"))
         departed = depart >= 0
         # An undeparted vehicle's departDelay runs to the simulation's end: it wanted to enter that long before.
-        intended = (depart if departed else horizon) - delay
+        intended = (depart if departed else (horizon if end is None else end)) - delay
         out.trips.append(Trip(t.get("id", ""), intended, departed, delay, float(t.get("timeLoss", "0")),
                               float(t.get("routeLength", "0")) if departed else 0.0))
     return out

@@ -1,0 +1,92 @@
+"""The merge under traffic demand as a PettingZoo env, on real SUMO: the API test with AVs that come and go, names
+never reused, observation slots handed on clean, collisions taken off while the run goes on, the plan's demand."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pettingzoo.test import parallel_api_test
+
+from cosim.config import load_config
+from cosim.environment.control import Action
+from cosim.environment.demand_env import DemandEnv
+from cosim.errors import ConfigError
+from cosim.sumo.demand import plan_demand, resolve_demand
+from cosim.sumo.net import load_net
+from cosim.sumo.resolve import resolve
+from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER
+
+pytestmark = pytest.mark.sumo
+
+SHORT = {"demand.enabled": True, "demand.warmup": 30.0, "demand.window": 60.0, "demand.av_penetration": 0.3}
+
+
+def _env(**over: object) -> DemandEnv:
+    return DemandEnv(load_config("configs/default.yaml", {**SHORT, **over}))
+
+
+def test_the_plan_draws_the_demand_it_is_given() -> None:
+    cfg = load_config("configs/default.yaml", {**SHORT, "demand.window": 3570.0, "demand.mainline_vph": 1200.0,
+                                               "demand.ramp_vph": 600.0, "demand.av_penetration": 0.25})
+    net = load_net(cfg.net.file)
+    cfg = resolve(cfg, net).config
+    d = resolve_demand(cfg, net)
+    plan = plan_demand(cfg, net, 3)
+    assert plan == plan_demand(cfg, net, 3) and plan != plan_demand(cfg, net, 4)
+    kinds = np.array([a.kind for a in plan])
+    hours = d.horizon / 3600
+    # An hour at 2 x 1,200 veh/h on the highway and 600 on the ramp (Poisson: within 4 standard deviations).
+    assert abs(np.sum(kinds != KIND_MERGER) - 2400 * hours) < 4 * np.sqrt(2400 * hours)
+    assert abs(np.sum(kinds == KIND_MERGER) - 600 * hours) < 4 * np.sqrt(600 * hours)
+    avs = [a for a in plan if a.kind == KIND_AV]
+    assert abs(len(avs) / np.sum(kinds != KIND_MERGER) - 0.25) < 0.04
+    assert [a.vid for a in avs] == [f"av_{i}" for i in range(len(avs))] and len(avs) <= d.max_avs
+    assert all(a.route == "ramp_0" for a in plan if a.kind == KIND_MERGER)
+    assert [a.depart for a in plan] == sorted(a.depart for a in plan)
+    counted = plan_demand(load_config(cfg, {"demand.av_count": 7}), net, 3)
+    assert sum(a.kind == KIND_AV for a in counted) == 7 and sum(a.kind == KIND_HV for a in counted) > 0
+
+
+def test_the_demand_env_passes_the_pettingzoo_api_test() -> None:
+    env = _env()
+    try:
+        parallel_api_test(env, num_cycles=200)
+    finally:
+        env.close()
+
+
+def test_avs_come_and_go_in_slots_and_a_crash_leaves_the_run_going() -> None:
+    env = _env()
+    try:
+        assert env.possible_agents == [f"av_{i}" for i in range(env.demand.max_avs)]
+        obs, _ = env.reset(seed=5)
+        seen, finished, steps, max_present = set(env.agents), set(), 0, len(env.agents)
+        while env.agents:
+            # AVs that accelerate without end run into the traffic ahead.
+            obs, rew, term, trunc, infos = env.step(dict.fromkeys(env.agents, int(Action.ACCELERATE)))
+            steps += 1
+            for a in env.agents:
+                assert a not in finished  # a name is never reused
+                assert obs[a].shape == env.observation_space(a).shape
+            finished |= {a for a in term if term[a] or trunc[a]}
+            seen |= set(env.agents)
+            max_present = max(max_present, len(env.agents))
+            assert len(env.slot) <= env.demand.slots and len(set(env.slot.values())) == len(env.slot)
+        assert env.steps == env.max_steps  # the run went on to its horizon
+        assert len(seen) > max_present  # AVs came and went, their slots handed on
+        assert any(info.get("crashed") for info in infos.values()) or env.last_record["crashed"].size
+        assert env.last_summary["avs_released"] == len(seen)
+        assert (env.out_dir / "record.npz").is_file() and env.last_outputs.passages
+    finally:
+        env.close()
+
+
+def test_too_few_observation_slots_is_one_line_naming_the_key() -> None:
+    env = _env(**{"demand.max_avs_present": 1, "demand.av_penetration": 0.9})
+    try:
+        with pytest.raises(ConfigError, match=r"demand.max_avs_present: 2 AVs present at once .* 1 observation slots"):
+            env.reset(seed=1)
+            while env.agents:
+                env.step(dict.fromkeys(env.agents, int(Action.IDLE)))
+    finally:
+        env.close()
