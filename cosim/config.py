@@ -556,9 +556,13 @@ class DemandConfig(_Section):
     seeds: Int = Field(5, ge=1, description="evaluation runs (seeds) of the window, by default [-]")
 
     @model_validator(mode="after")
-    def _window_of_steps(self) -> Self:
-        if self.interval > self.window:
-            raise _problem(f"must be at most the window ({self.window:g} s), got {self.interval:g} s", "interval")
+    def _window_of_intervals(self) -> Self:
+        # The detectors' intervals start at 0: the window is measured by whole ones only where they align.
+        for key in ("warmup", "window"):
+            count = getattr(self, key) / self.interval
+            if abs(count - round(count)) > 1e-6 or (key == "window" and count < 1 - 1e-6):
+                raise _problem(f"must be a whole number of demand.interval ({self.interval:g} s, the detectors' "
+                               f"aggregation), got {getattr(self, key):g} s", key)
         return self
 
 

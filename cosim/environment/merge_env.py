@@ -373,10 +373,16 @@ class MergeEnv(ParallelEnv):
 
 def parallel_env(config: str | Path | Mapping[str, Any] | Config | None = None,
                  overrides: Mapping[str, Any] | list[str] | None = None,
-                 render_mode: str | None = None) -> MergeEnv:
+                 render_mode: str | None = None) -> ParallelEnv:
     """The PettingZoo way: `cosim.parallel_env(config="configs/default.yaml", overrides={"reward.phi": 0.785})`;
-    without a config, the built-in defaults on the bundled merge net."""
-    return MergeEnv(load_config(config, overrides), render_mode=render_mode)
+    without a config, the built-in defaults on the bundled merge net. A config with `demand.enabled` gives the
+    merge under traffic demand (`cosim.environment.demand_env.DemandEnv`), else the episode env."""
+    cfg = load_config(config, overrides)
+    if cfg.demand.enabled:
+        from cosim.environment.demand_env import DemandEnv  # it builds on this module
+
+        return DemandEnv(cfg, render_mode=render_mode)
+    return MergeEnv(cfg, render_mode=render_mode)
 
 
 def env(config: str | Path | Mapping[str, Any] | Config | None = None,

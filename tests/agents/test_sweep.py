@@ -19,9 +19,16 @@ def test_tiny_sweep_runs_end_to_end_and_resumes(tmp_path: Path, monkeypatch: pyt
     monkeypatch.chdir(ROOT)
     out = tmp_path / "sweep"
     args = ["sweep", "--config", "configs/smoke.yaml", "--phi", "0", "0.7854", "--seeds", "0", "--budget-min", "0.05",
-            "--eval-episodes", "4", "--eval-workers", "1", "--baselines", "idle", "courteous", "--out", str(out)]
+            "--eval-episodes", "4", "--eval-workers", "1", "--baselines", "idle", "courteous", "--out", str(out),
+            # each run and baseline under traffic demand too: one seed of a 30 s window after 30 s
+            "--demand", "configs/demand.yaml", "--set", "demand.warmup=30", "--set", "demand.window=30",
+            "--set", "demand.seeds=1"]
     assert main(args) == 0
     report = (out / "report.md").read_text()
+    assert "## Traffic flow under demand" in report and "flow_demand.png" in report
+    assert "| throughput, total [veh/h] |" in report and (out / "flow_demand.png").stat().st_size > 1000
+    for r in (out / "runs").iterdir():
+        assert json.loads((r / "eval_demand" / "summary.json").read_text())["demand"]["level_of_service"]
     for needle in ("## The paper's claims", "(2) altruistic AVs", "rates_vs_phi.png", "merger_distance.png",
                    "flow_vs_phi.png", "training_curves.png", "phi=0.000 (egoistic)", "phi=0.785 (altruistic)", "idle"):
         assert needle in report, needle

@@ -133,12 +133,12 @@ def test_workers_give_the_same_rows(tmp_path: Path) -> None:
     assert [r["mean_distance"] for r in one] == [r["mean_distance"] for r in two]
 
 
-def _tiny_checkpoint(path: Path, obs_shape: tuple[int, ...], updates: int = 1) -> None:
-    net = ActorCritic(obs_shape, 5, feature_dim=8, head_hidden=8)
+def _tiny_checkpoint(path: Path, obs_shape: tuple[int, ...], updates: int = 1, shared: bool = True) -> None:
+    nets = [ActorCritic(obs_shape, 5, feature_dim=8, head_hidden=8) for _ in range(1 if shared else 4)]
     spec = {"agents": [f"av_{i}" for i in range(4)], "obs_shape": list(obs_shape), "obs_dtype": "float32",
-            "n_actions": 5, "shared_policy": True, "feature_dim": 8, "head_hidden": 8}
-    save_checkpoint(path, {"spec": spec, "policy": {"nets": [net.state_dict()]}, "counters": {"updates": updates},
-                           "rng": {}})
+            "n_actions": 5, "shared_policy": shared, "feature_dim": 8, "head_hidden": 8}
+    save_checkpoint(path, {"spec": spec, "policy": {"nets": [n.state_dict() for n in nets]},
+                           "counters": {"updates": updates}, "rng": {}})
 
 
 def test_act_agents_batches_agents_sharing_a_network() -> None:
@@ -297,3 +297,38 @@ def test_cli_evaluate_videos_beside_the_time_space_diagrams(tmp_path: Path, capl
     bad = ["evaluate", "--policy", "idle", "--episodes", "1", "--videos", "-1", "--out", str(tmp_path / "x")]
     assert main(bad) == 2
     assert caplog.messages == ["--videos: must be >= 0, got -1"]
+
+
+def test_evaluate_under_demand_writes_the_flow_metrics_figures_and_level_of_service(tmp_path: Path) -> None:
+    out = tmp_path / "demand"
+    assert main(["evaluate", "--policy", "courteous", "--config", "configs/demand.yaml", "--episodes", "2",
+                 "--set", "demand.warmup=30", "--set", "demand.window=60", "--out", str(out)]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["episodes"] == 2 and summary["demand"]["level_of_service"] in "ABCDEF"
+    assert summary["demand"]["mainline_vph"] == pytest.approx(0.6 * 2400)  # a share of the HCM capacity
+    for label in ("throughput, total [veh/h]", "ramp queue, max [veh]", "delay per vehicle [s]",
+                  "total time spent [veh h]", "distance per vehicle [m]", "density, merge influence area [veh/km/ln]",
+                  "merge success, per merging vehicle [%]"):
+        assert summary["metrics"][label]["n"] == 2, label
+    for name in ("speed_heatmap.png", "merge_time_space.png", "flow_density.png"):
+        assert _is_png(out / "plots" / name), name
+    report = (out / "report.md").read_text()
+    assert "level of service" in report and "flow_density.png" in report
+    # Its outputs stay small: SUMO's files and the record of a 90 s run.
+    assert sum(p.stat().st_size for p in (out / "sumo").rglob("*") if p.is_file()) < 3_000_000
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_a_shared_network_drives_every_av_under_demand_a_per_av_one_is_refused(tmp_path: Path, shared: bool) -> None:
+    cfg = _cfg()
+    shape = (cfg.observation.frames, len(cfg.observation.channels), cfg.observation.height_px,
+             cfg.observation.width_px)
+    path = tmp_path / "checkpoint.pt"
+    _tiny_checkpoint(path, shape, shared=shared)
+    demand = load_config("configs/demand.yaml", ["demand.interval=10", "demand.warmup=10", "demand.window=20"])
+    if shared:
+        summary = evaluate(demand, TrainedPolicy(str(path)), tmp_path / "eval", episodes=1, plots=False)
+        assert summary["episodes"] == 1
+    else:
+        with pytest.raises(CheckpointError, match=r"one network per AV .* train with a shared network"):
+            evaluate(demand, TrainedPolicy(str(path)), tmp_path / "eval", episodes=1, plots=False)
