@@ -223,6 +223,10 @@ class _Run:
         """Every check on the input and the run folder, before anything in the folder changes."""
         backend = backend or Backend()
         backend.check()
+        if cfg.demand.enabled and env_factory is None:
+            raise ConfigError("demand.enabled: training runs on the episode scenario (AVs of fixed names, episodes of "
+                              "seconds); evaluate the trained AVs under demand: cosim evaluate --run RUN --config "
+                              "configs/demand.yaml")
         tc = train_config(cfg)
         tc = tc.model_copy(update={"workers": workers or tc.workers, "episodes": episodes or tc.episodes,
                                    "budget_min": tc.budget_min if budget_min is None else budget_min,

@@ -44,6 +44,12 @@ def smoke_run(tmp_path_factory: pytest.TempPathFactory, cli_class: type) -> Path
     (["compare", "no_such_run", "--out", "report"], "no_such_run: no evaluation found"),
     (["run-scenario", "--config", SMOKE, "--episodes", "1", "--save-routes", "a_file/routes"], "a_file/routes"),
     (["train", "--config", SMOKE, "--out", "run", "--ray-address", "auto"], "only with --backend ray"),
+    (["train", "--config", SMOKE, "--out", "run", "--set", "demand.enabled=true"],
+     "demand.enabled: training runs on the episode scenario"),
+    (["check-net", "no_such.net.xml"], "no_such.net.xml: not found"),
+    (["run-scenario", "--config", SMOKE, "--net", "no_such.net.xml"], "--net no_such.net.xml: not found"),
+    (["evaluate", "--config", SMOKE, "--policy", "idle", "--out", "x", "--set", "demand.enabled=true",
+      "--set", "demand.warmup=45"], "demand.warmup: must be a whole number of demand.interval"),
     (["train", "--config", SMOKE, "--out", "run", "--backend", "ray", "--ray-address", "127.0.0.1:1"],
      "127.0.0.1:1: cannot reach it"),
 ])
