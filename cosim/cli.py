@@ -263,17 +263,21 @@ def _sweep(args: argparse.Namespace) -> int:
 
 
 # -- evaluate ------------------------------------------------------------------------------------------
-def _evaluate_arguments(parser: argparse.ArgumentParser) -> None:
+def _policy_arguments(parser: argparse.ArgumentParser, policy_help: str) -> None:
+    """What a command that plays a policy takes: the config options, and a run, a checkpoint or a baseline."""
     from cosim.evaluation.runner import BASELINES
 
     add_config_arguments(parser, default=None)
     parser.add_argument("--run", type=Path, help="training run folder (its config.yaml and checkpoint.pt)")
     parser.add_argument("--checkpoint", type=Path, help="checkpoint file (default: RUN/checkpoint.pt)")
-    parser.add_argument("--policy", choices=["checkpoint", "sb3", *BASELINES], default="checkpoint",
-                        help="a baseline instead of a checkpoint: sumo (SUMO drives the AVs), idle, random, "
-                             "scripted (egoistic), courteous (lets the merging vehicle in); or sb3, a "
-                             "Stable-Baselines3 model given by --checkpoint (scripts/train_sb3.py) "
-                             "(default: checkpoint)")
+    parser.add_argument("--policy", choices=["checkpoint", "sb3", *BASELINES], default="checkpoint", help=policy_help)
+
+
+def _evaluate_arguments(parser: argparse.ArgumentParser) -> None:
+    _policy_arguments(parser, "a baseline instead of a checkpoint: sumo (SUMO drives the AVs), idle, random, "
+                              "scripted (egoistic), courteous (lets the merging vehicle in); or sb3, a "
+                              "Stable-Baselines3 model given by --checkpoint (scripts/train_sb3.py) "
+                              "(default: checkpoint)")
     parser.add_argument("--episodes", type=int, help="evaluation episodes (default: evaluate.episodes, 100)")
     parser.add_argument("--seed", type=int, help=f"first evaluation seed (default: {EVAL_SEED_START:,}, disjoint "
                                                  "from training seeds)")
@@ -375,13 +379,7 @@ def _check_net(args: argparse.Namespace) -> int:
 
 # -- replay --------------------------------------------------------------------------------------------
 def _replay_arguments(parser: argparse.ArgumentParser) -> None:
-    from cosim.evaluation.runner import BASELINES
-
-    add_config_arguments(parser, default=None)
-    parser.add_argument("--run", type=Path, help="training run folder (its config.yaml and checkpoint.pt)")
-    parser.add_argument("--checkpoint", type=Path, help="checkpoint file (default: RUN/checkpoint.pt)")
-    parser.add_argument("--policy", choices=["checkpoint", "sb3", *BASELINES], default="checkpoint",
-                        help="a baseline instead of a checkpoint, as in `cosim evaluate` (default: checkpoint)")
+    _policy_arguments(parser, "a baseline instead of a checkpoint, as in `cosim evaluate` (default: checkpoint)")
     parser.add_argument("--seed", type=int, help=f"the episode's seed (default: evaluate.seed, {EVAL_SEED_START:,}: "
                                                  "the evaluation's first episode)")
     parser.add_argument("--sample", action="store_true", help="sample actions instead of the greedy argmax")

@@ -20,7 +20,6 @@ With `sim.av_driver: sumo` SUMO drives the AVs (the all-human baseline) and acti
 
 from __future__ import annotations
 
-import logging
 import shutil
 import tempfile
 from collections.abc import Mapping
@@ -41,14 +40,11 @@ from cosim.environment.velocity_map import VelocityMapper, rasterize_road
 from cosim.errors import ConfigError
 from cosim.sumo.demand import plan_demand, resolve_demand, write_demand
 from cosim.sumo.flow_outputs import FlowOutputs, flow_output_args, flow_sites, read_flow_outputs
-from cosim.sumo.net import load_net
-from cosim.sumo.resolve import resolve
+from cosim.sumo.resolve import on_net
 from cosim.sumo.scenario import av_id, kind_of
 from cosim.sumo.session import Gui, SumoSession
 from cosim.sumo.snapshot import KIND_AV, KIND_MERGER, Snapshot
 from cosim.workers import run_folder
-
-log = logging.getLogger(__name__)
 
 
 class DemandEnv(ParallelEnv):
@@ -58,12 +54,9 @@ class DemandEnv(ParallelEnv):
         if render_mode is not None:
             raise ValueError(f"render_mode: demand mode renders nothing, got {render_mode!r}")
         self.render_mode = render_mode
-        self.net = load_net(config.net.file, config.net.description)
-        resolved = resolve(config, self.net)
+        self.net, resolved = on_net(config)
         self.cfg = config = resolved.config
         self.resolution_notes = resolved.notes
-        for note in resolved.notes:
-            log.warning("%s", note)
         if isinstance(config.reward.phi, tuple):
             raise ConfigError("reward.phi: one angle for every AV in demand mode (AVs come and go), got a list")
         self.demand = resolve_demand(config, self.net)

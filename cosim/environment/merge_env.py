@@ -55,9 +55,8 @@ from cosim.environment.reward import StepChange, svo_rewards, utility_terms, wei
 from cosim.environment.tracker import EpisodeTracker
 from cosim.environment.velocity_map import VelocityMapper, rasterize_road
 from cosim.errors import CosimError, SimulationError
-from cosim.sumo.net import load_net
 from cosim.sumo.outputs import SumoOutputs, detector_site, episode_folder, episode_output_args, read_episode_outputs
-from cosim.sumo.resolve import resolve
+from cosim.sumo.resolve import on_net
 from cosim.sumo.scenario import av_id, kind_of, plan_episode, write_episode
 from cosim.sumo.session import Gui, SumoSession
 from cosim.sumo.snapshot import KIND_AV, KIND_MERGER, Snapshot
@@ -98,13 +97,10 @@ class MergeEnv(ParallelEnv):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
         self.render_mode = render_mode
-        self.net = load_net(config.net.file, config.net.description)
         # Everything below reads the config resolved on this net: net-relative keys in absolute units.
-        resolved = resolve(config, self.net)
+        self.net, resolved = on_net(config)
         self.cfg = config = resolved.config
         self.resolution_notes = resolved.notes
-        for note in resolved.notes:
-            log.warning("%s", note)
         plan_episode(config, self.net, config.sim.seed)  # a placement this net makes impossible fails here, at once
         self.road, self.chainage = self.net.road, self.net.chainage
         self.zone = MergeZone.from_net(self.net)

@@ -1,6 +1,7 @@
 """The scenario's net-relative keys, resolved on one net into absolute units.
 
-Contract: `resolve(cfg, net)` returns a `Resolved`: `config`, the same experiment with every net-relative key
+Contract: `resolve(cfg, net)` returns a `Resolved` (`on_net(cfg)`: the config's own net loaded, and the notes
+logged): `config`, the same experiment with every net-relative key
 of `cosim.config.TWINS` replaced by its absolute twin for this net, and `notes`, one line per value the net
 cannot take, naming the key, what was asked and what it became (capped, never a SUMO error). Speeds are
 factors of speed limits: the highway's where the merge is (`Net.speed_limit`: the AVs' top speed and speed
@@ -16,17 +17,29 @@ env (the planner, control, reward, observation, the hand-written policies) reads
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Any
 
 from cosim.config import Config
-from cosim.sumo.net import Net
+from cosim.sumo.net import Net, load_net
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class Resolved:
     config: Config
     notes: tuple[str, ...]  # one line per capped value, naming its key
+
+
+def on_net(cfg: Config) -> tuple[Net, Resolved]:
+    """The config's net, and the config resolved on it, every capped value logged as a warning (an env's start)."""
+    net = load_net(cfg.net.file, cfg.net.description)
+    resolved = resolve(cfg, net)
+    for note in resolved.notes:
+        log.warning("%s", note)
+    return net, resolved
 
 
 def _span(factor: tuple[float, float], scale: float) -> tuple[float, float]:
