@@ -124,7 +124,8 @@ def window_metrics(out: FlowOutputs, rec: Mapping[str, np.ndarray], demand: Dema
     row.update({"merging_vehicles": int(merging.sum()),
                 "merge_rate_pct": 100.0 * float(np.mean(np.isfinite(merged[merging]))) if merging.any() else math.nan,
                 "crash_rate_pct": 100.0 * float(np.mean(crashed[merging])) if merging.any() else math.nan,
-                "collisions": int(np.count_nonzero((rec["collision_times"] >= w0) & (rec["collision_times"] < w1))),
+                "collisions_window": int(np.count_nonzero((rec["collision_times"] >= w0)
+                                                          & (rec["collision_times"] < w1))),
                 "avs_present_max": int(rec["avs_present"].max()) if len(rec["avs_present"]) else 0})
     return row
 

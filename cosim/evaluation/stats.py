@@ -59,7 +59,7 @@ FLOW_METRICS: dict[str, tuple[str, float]] = {
     "density, merge influence area [veh/km/ln]": ("density_vkmln", 1.0),
     "merge success, per merging vehicle [%]": ("merge_rate_pct", 1.0),
     "crash, per merging vehicle [%]": ("crash_rate_pct", 1.0),
-    "collisions [per window]": ("collisions", 1.0),
+    "collisions [per window]": ("collisions_window", 1.0),
 }
 # Labels of SUMMARY_METRICS whose column is 0/1 per episode: Wilson score intervals, not t-intervals.
 RATE_METRICS: frozenset[str] = frozenset(label for label, (_, scale) in SUMMARY_METRICS.items() if scale == 100.0)

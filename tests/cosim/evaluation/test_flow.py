@@ -69,7 +69,7 @@ def test_the_detectors_count_the_window_only_and_by_origin(tmp_path: Path) -> No
     assert row["throughput_mainline_vph"] == pytest.approx(4 / hours)
     # 6 vehicles wanted to enter in the window (the warm-up's 3 do not count), none waited, both ramp ones merged.
     assert row["vehicles"] == 6 and row["merging_vehicles"] == 2 and row["merge_rate_pct"] == 100.0
-    assert row["ramp_queue_max_veh"] == 0 and row["collisions"] == 0
+    assert row["ramp_queue_max_veh"] == 0 and row["collisions_window"] == 0
     # Each drove the whole of its route (the trip is unfinished only if still on it at the end).
     assert row["distance_mean_m"] > 1000
 
