@@ -305,7 +305,7 @@ class _Run:
                          self.counters["episodes"])
             # Storage for one update, allocated once: T steps x W workers x N agents.
             self.batch = Batch.allocate(spec.max_steps, tc.workers, len(spec.agents), spec.obs_shape,
-                                        getattr(torch, spec.obs_dtype))
+                                        getattr(torch, spec.obs_dtype), spec.n_actions)
             # Every check passed: from here on the run folder changes.
             self.lock.acquire()
             for stale in stale_temporaries(out_dir, CHECKPOINT_NAME) + stale_temporaries(out_dir, POLICY_NAME):
