@@ -81,7 +81,7 @@ class EpisodeTracker:
 
         One pass over the snapshot's vehicles: the env feeds every step through this."""
         self.steps += 1
-        dt = float(snap.time) - self.time
+        dt = round(float(snap.time) - self.time, 6)  # [s] SUMO's clock counts milliseconds: no float residue
         self.time = float(snap.time)
         for agent, a in (actions or {}).items():
             self.actions.setdefault(agent, []).append(int(a))
