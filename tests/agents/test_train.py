@@ -241,6 +241,23 @@ def test_resume_refuses_a_changed_config_before_touching_the_run(tmp_path: Path)
     assert train_config(load_config(run / "config.yaml")).lr == 0.01
 
 
+def test_a_run_from_before_the_masks_and_safety_measures_resumes_as_it_trained(tmp_path: Path) -> None:
+    """Its config.yaml has no safety section (which only counts) and no train.action_mask (it trained without):
+    resuming it unmasked needs nothing more; with masks is a change of what it learns, refused naming the key."""
+    run = tmp_path / "run"
+    train(cfg_with(action_mask=False), run, workers=1, episodes=2, env_factory=make_fake_env(n_agents=2),
+          progress=False)
+    saved = yaml.safe_load((run / "config.yaml").read_text())
+    del saved["safety"], saved["train"]["action_mask"]
+    (run / "config.yaml").write_text(yaml.safe_dump(saved))
+    with pytest.raises(ConfigError, match=r"\(train\.action_mask: False -> True\);"):
+        train(cfg_with(), run, workers=1, episodes=4, resume=True, env_factory=make_fake_env(n_agents=2),
+              progress=False)
+    resumed = train(cfg_with(action_mask=False), run, workers=1, episodes=4, resume=True,
+                    env_factory=make_fake_env(n_agents=2), progress=False)
+    assert resumed.episodes == 4
+
+
 def test_a_killed_run_resumes_with_logs_cut_to_its_checkpoint(tmp_path: Path) -> None:
     run = tmp_path / "run"
     cfg = cfg_with(checkpoint_every=2)
