@@ -367,8 +367,8 @@ class SafetyConfig(_Section):
         "[m/s^2]")
     pet: Number = Field(2.0, gt=0, description="a post-encroachment time below this is a conflict [s]")
     hard_braking: Number = Field(
-        4.0, gt=0, description="a vehicle whose speed falls faster than this over a decision period brakes hard; "
-        "consecutive such periods are one event [m/s^2]")
+        4.0, gt=0, description="a vehicle whose speed falls by more than this times sim.decision_period from one "
+        "decision to the next brakes hard; consecutive such periods are one event [m/s^2]")
 
 
 class ScenarioConfig(_Section):

@@ -156,7 +156,7 @@ class MergeEnv(ParallelEnv):
 
     def new_tracker(self, record: bool = False) -> EpisodeTracker:
         return EpisodeTracker(self.zone, self.chainage, record=record, cut_in_window=self.cfg.sim.cut_in_window,
-                              hard_braking=self.cfg.safety.hard_braking)
+                              hard_braking=self.cfg.safety.hard_braking, period=self.cfg.sim.decision_period)
 
     # -- PettingZoo API -----------------------------------------------------------------------------
     # One space object for all agents, as PettingZoo asks (no functools.cache: it would keep the env alive).
