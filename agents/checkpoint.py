@@ -14,8 +14,11 @@ Contract:
   maps each agent name to its trained `ActorCritic` (eval mode; the same object for every agent when the
   policy is shared), whose `act(obs (B, F, C, H, W), greedy)` gives actions; `meta` holds the checkpoint's
   spec, counters and config.
-  `act_agents(policies, obs, greedy)` acts for named agents, one forward per network (agents sharing a
-  network are batched), the way evaluation plays a checkpoint.
+  `act_agents(policies, obs, greedy, masks)` acts for named agents, one forward per network (agents sharing a
+  network are batched), the way evaluation plays a checkpoint; with `masks` (agent -> the env's action mask)
+  among the allowed actions only. `TrainedPolicy` masks with the env's `action_masks()` (what its infos carry)
+  when the run trained with `train.action_mask` (its checkpoint's train section; runs from before the key
+  existed trained without).
 Payload layout (format "cosim-ma-a2c", version 2): spec {agents, obs_shape, obs_dtype, n_actions,
 shared_policy, feature_dim, head_hidden}, policy (MultiAgentPolicy.state_dict()), counters (with train_s),
 rng {python, numpy, torch}, train (TrainConfig as a dict), config (Config.to_dict()), phis (each AV's SVO
@@ -184,8 +187,11 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[dict[str, ActorC
 
 
 @torch.no_grad()
-def act_agents(policies: Mapping[str, ActorCritic], obs: Mapping[str, np.ndarray], greedy: bool) -> dict[str, int]:
-    """Each agent's action for its observation (F, C, H, W); agents sharing a network act in one batch.
+def act_agents(policies: Mapping[str, ActorCritic], obs: Mapping[str, np.ndarray], greedy: bool,
+               masks: Mapping[str, np.ndarray] | None = None) -> dict[str, int]:
+    """Each agent's action for its observation (F, C, H, W), among those its mask (A,) allows where `masks` are
+    given (an agent without one, done already, whose action the env ignores, acts unmasked); agents sharing a
+    network act in one batch.
 
     (`agents.multiagent.MultiAgentPolicy.act` batches the same way during training, but samples only and
     follows the learner schedule of a training run's networks.)"""
@@ -195,7 +201,13 @@ def act_agents(policies: Mapping[str, ActorCritic], obs: Mapping[str, np.ndarray
     actions = {}
     for names in groups.values():
         batch = np.stack([obs[a] for a in names])  # (B, F, C, H, W)
-        actions.update(zip(names, policies[names[0]].act(batch, greedy=greedy).tolist(), strict=True))
+        net = policies[names[0]]
+        if masks is None:  # any actor with `ActorCritic.act`'s signature (agents.sb3.Sb3Actor too)
+            got = net.act(batch, greedy=greedy)
+        else:
+            got = net.act(batch, greedy=greedy,
+                          mask=np.stack([masks.get(a, np.ones(net.n_actions, np.int8)) for a in names]))  # (B, A)
+        actions.update(zip(names, got.tolist(), strict=True))
     return actions
 
 
@@ -218,13 +230,15 @@ class TrainedPolicy:
         if worker:
             torch.set_num_threads(1)  # W evaluation workers on W cores
         nets, meta = load_policy(self.checkpoint)
-        return episode_actors(nets, meta["spec"], env, self.checkpoint, self.greedy)
+        return episode_actors(nets, meta["spec"], env, self.checkpoint, self.greedy,
+                              masked=bool(meta["train"].get("action_mask", False)))
 
 
 def episode_actors(nets: Mapping[str, Any], spec: Mapping[str, Any], env: ParallelEnv, path: str | Path,
-                   greedy: bool) -> Callable[[int], Callable[[Mapping[str, np.ndarray]], dict]]:
+                   greedy: bool, masked: bool = False) -> Callable[[int], Callable[[Mapping[str, np.ndarray]], dict]]:
     """Episode seed -> (observations -> actions) of networks checked against the env's observations and agents;
-    seeded per episode, so that sampled actions do not depend on which worker plays it."""
+    seeded per episode, so that sampled actions do not depend on which worker plays it; `masked`: among the
+    actions the env's `action_masks()` allow (the masks of its infos, read when the actions are asked for)."""
     agents = env.possible_agents
     shape = tuple(env.observation_space(agents[0]).shape)
     if tuple(spec["obs_shape"]) != shape:
@@ -246,7 +260,7 @@ def episode_actors(nets: Mapping[str, Any], spec: Mapping[str, Any], env: Parall
 
     def for_episode(seed: int) -> Callable[[Mapping[str, np.ndarray]], dict]:
         torch.manual_seed(seed)
-        return lambda obs: act_agents(nets, obs, greedy)
+        return lambda obs: act_agents(nets, obs, greedy, env.action_masks() if masked else None)
 
     return for_episode
 

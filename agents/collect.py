@@ -5,7 +5,8 @@ episode seeds and steps them until each episode is over, filling `batch` (agents
 returning a `Collected` with each finished episode's summary, per-agent returns and reward terms. The
 workers are split into two halves that take turns: while one half's envs step (in their processes), the
 learner acts for the other half, one batched forward over all its live agents. Observations come from the
-pool's shared slots; the values of truncated agents' final observations are computed as they arrive.
+pool's shared slots, each live agent's action mask with its worker's result (`StepResult.action_mask`, kept in
+`Batch.masks` for the update); the values of truncated agents' final observations are computed as they arrive.
 A worker that fails is replaced by the pool; its fresh replacement plays the episode again (the same seed and
 actions: SUMO is deterministic) up to the command that failed. A failure that comes back there is no bad luck
 but the episode's own (SUMO refusing an input, say): training stops at once with `EpisodeError` naming it,
@@ -86,7 +87,7 @@ def collect(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, seeds: lis
                 elif t + 1 >= batch.valid.shape[0]:
                     raise RuntimeError(f"an episode ran past {batch.valid.shape[0]} steps, the env's max_steps")
                 else:
-                    live.append((w, res.alive))
+                    live.append((w, res))
             if final:
                 t_, w_, i_ = (torch.tensor(x) for x in zip(*final, strict=True))
                 obs = torch.from_numpy(pool.final[w_.numpy(), i_.numpy()])
@@ -115,21 +116,23 @@ def _replay(pool: WorkerPool, batch: Batch, w: int, seed: int, t: int, error: st
     return res
 
 
-def _act(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, live: list[tuple[int, np.ndarray]],
+def _act(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, live: list[tuple[int, StepResult]],
          step: np.ndarray, update: int) -> None:
-    """One batched forward for the live agents of `live` workers; their actions go out at once."""
+    """One batched forward for the live agents of `live` workers (each with its last result: who is alive, their
+    action masks); their actions go out at once."""
     ws = [w for w, _ in live]
     rows, agents, times = [], [], []
-    for w, alive in live:
+    for w, res in live:
         t = step[w]
         batch.obs[t, w] = torch.from_numpy(pool.obs[w])  # a copy out of the shared slot
-        idx = np.flatnonzero(alive)
+        batch.masks[t, w] = torch.from_numpy(res.action_mask)
+        idx = np.flatnonzero(res.alive)
         batch.valid[t, w, idx] = True
         rows += [w] * len(idx)
         agents += idx.tolist()
         times += [t] * len(idx)
     w_, i_, t_ = torch.tensor(rows), torch.tensor(agents), torch.tensor(times)
-    actions, logp, values = policy.act(batch.obs[t_, w_, i_], i_, update)
+    actions, logp, values = policy.act(batch.obs[t_, w_, i_], i_, update, batch.masks[t_, w_, i_])
     batch.actions[t_, w_, i_], batch.logp[t_, w_, i_], batch.values[t_, w_, i_] = actions, logp, values
     full = np.ones((len(ws), batch.valid.shape[2]), dtype=np.int64)  # idle for agents that are gone
     pos = {w: k for k, w in enumerate(ws)}

@@ -6,7 +6,8 @@ observations (read-only views into a buffer that the next step overwrites, like 
 channel 1 lit) and earns 1 for answering it with lane-left (0) or lane-right (2) respectively, so the
 optimal policy is learnable from the observation. Accelerate (3) "crashes" the agent: reward -1 and
 terminated. Agents still running at `horizon` steps are truncated. Infos carry `reward_terms` and, on
-the last step, `episode`. `fail_once_file` makes the env fail once (across processes) at step
+the last step, `episode`; with `masked` actions, each live agent's infos carry an `action_mask` (int8, 0 for those)
+at reset and every step, as the merge env's do. `fail_once_file` makes the env fail once (across processes) at step
 `fail_at_step`, to test worker restarts: raise `SimulationError`, or with `fail_by_exit` end its process
 (as a SUMO crash does); `fail_always` makes every episode fail there (an input SUMO refuses). `step_sleep`
 [s] makes each step take that long (a slow simulation).
@@ -38,7 +39,7 @@ class CueEnv(ParallelEnv):
     def __init__(self, n_agents: int = 2, obs_shape: tuple[int, int, int, int] = (2, 4, 8, 16),
                  dtype: str = "float32", horizon: int = 8, fail_once_file: str | None = None,
                  fail_at_step: int = 3, fail_by_exit: bool = False, step_sleep: float = 0.0,
-                 render_mode: str | None = None, fail_always: bool = False) -> None:
+                 render_mode: str | None = None, fail_always: bool = False, masked: tuple[int, ...] = ()) -> None:
         self.possible_agents = [f"av_{i}" for i in range(n_agents)]
         self.agents: list[str] = []
         self.render_mode = render_mode
@@ -52,6 +53,7 @@ class CueEnv(ParallelEnv):
         self._high = _HIGH[dtype]
         self._obs_space = spaces.Box(0, self._high, shape=tuple(obs_shape), dtype=np.dtype(dtype))
         self._act_space = spaces.Discrete(5)
+        self._info = {"action_mask": np.isin(np.arange(5), masked, invert=True).astype(np.int8)} if masked else {}
         self._buf = np.zeros((n_agents, *obs_shape), dtype=dtype)  # (N, F, C, H, W)
         self._rng = np.random.default_rng(0)
         self._cue = np.zeros(n_agents, dtype=np.int64)
@@ -88,7 +90,7 @@ class CueEnv(ParallelEnv):
         self._t = 0
         self._returns[:] = 0
         self._crashed = False
-        return self._observe(), {a: {} for a in self.agents}
+        return self._observe(), {a: dict(self._info) for a in self.agents}
 
     def step(self, actions: dict[str, int]) -> tuple[dict, dict, dict, dict, dict]:
         self._t += 1
@@ -115,7 +117,7 @@ class CueEnv(ParallelEnv):
             self._crashed |= crash
             terms[a] = crash
             truncs[a] = not crash and self._t >= self.horizon
-            infos[a] = {"reward_terms": {"speed": correct, "collision": -float(crash)}}
+            infos[a] = {"reward_terms": {"speed": correct, "collision": -float(crash)}, **self._info}
         acting = list(self.agents)
         self.agents = [a for a in acting if not (terms[a] or truncs[a])]
         obs = self._observe()

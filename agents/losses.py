@@ -12,6 +12,9 @@ Contract:
   policy gradient -E[log pi(a|s) A], or with `clip_range` PPO's clipped surrogate
   -E[min(rho A, clip(rho, 1 - eps, 1 + eps) A)], rho = pi(a|s) / pi_old(a|s).
 - `normalize(x)` standardises advantages over a batch.
+- `masked_logits(logits, mask)` sets the logits of masked actions (mask 0) to -inf: they get probability 0 in
+  sampling, log-probabilities and entropy alike. `actor_critic_loss(..., mask=...)` applies it, so the update's
+  log-probabilities and entropy are those of the distribution the actions were sampled from.
 - `ValueNorm` keeps running (debiased exponential) mean and variance of the critic's targets, so that the
   critic learns returns of any scale at unit scale (MAPPO's value normalisation).
 - `OPTIMIZERS` maps `train.optimizer` names to builders.
@@ -68,6 +71,12 @@ class LossTerms:
     clip_fraction: torch.Tensor  # share of samples whose ratio was clipped (ppo)
 
 
+def masked_logits(logits: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """`logits` (M, A) with -inf where `mask` (M, A; nonzero = allowed) is 0; None leaves them as they are. Every row
+    must allow an action (the env's idle always is)."""
+    return logits if mask is None else logits.masked_fill(mask.to(logits.device) == 0, float("-inf"))
+
+
 def normalize(x: torch.Tensor) -> torch.Tensor:
     return (x - x.mean()) / (x.std() + 1e-8) if x.numel() > 1 else x - x.mean()
 
@@ -82,11 +91,13 @@ def actor_critic_loss(
     value_coef: float,
     old_logp: torch.Tensor | None = None,
     clip_range: float | None = None,
+    mask: torch.Tensor | None = None,
 ) -> LossTerms:
     """Loss over M samples: logits (M, A), values (M,), actions (M,), advantages (M,), returns (M,) (the
-    critic's targets, in the critic's own scale), old_logp (M,) (needed with `clip_range`)."""
+    critic's targets, in the critic's own scale), old_logp (M,) (needed with `clip_range`), mask (M, A) (the
+    action masks the actions were sampled under, or None)."""
     advantages, returns = advantages.detach(), returns.detach()
-    dist = torch.distributions.Categorical(logits=logits)
+    dist = torch.distributions.Categorical(logits=masked_logits(logits, mask))
     logp = dist.log_prob(actions)
     zero = torch.zeros((), device=logits.device)
     approx_kl, clipped = zero, zero

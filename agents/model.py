@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from agents.losses import masked_logits
 from cosim.errors import ConfigError
 
 
@@ -119,12 +120,15 @@ class ActorCritic(nn.Module):
             return self.critic(self.features(obs)).squeeze(-1).float()
 
     @torch.no_grad()
-    def act(self, obs: np.ndarray | torch.Tensor, greedy: bool = False) -> np.ndarray:
-        """Actions (B,) int64 for an observation batch (B, F, C, H, W): argmax if greedy, else sampled."""
+    def act(self, obs: np.ndarray | torch.Tensor, greedy: bool = False,
+            mask: np.ndarray | torch.Tensor | None = None) -> np.ndarray:
+        """Actions (B,) int64 for an observation batch (B, F, C, H, W): argmax if greedy, else sampled; with `mask`
+        (B, A; 0 = not allowed) among the allowed actions only."""
         device = next(self.parameters()).device
         if isinstance(obs, np.ndarray):
             obs = torch.from_numpy(obs if obs.flags.writeable else obs.copy())  # env views are read-only
         logits, _ = self(obs.to(device))
+        logits = masked_logits(logits, None if mask is None else torch.as_tensor(mask))
         if greedy:
             return logits.argmax(-1).cpu().numpy()
         return torch.distributions.Categorical(logits=logits).sample().cpu().numpy()

@@ -9,9 +9,12 @@ Contract (N AVs):
   other AVs' networks stay frozen); the learner acts with its live network, the others with their frozen
   copies. After the K-th update of a block the learner's network is copied into its acting copy
   (dissemination) and the next AV becomes the learner.
-- `act(obs, agents, update)` samples actions for a flat batch of observations of the given AV indices, one
+- `act(obs, agents, update, masks)` samples actions for a flat batch of observations of the given AV indices, one
   forward per network in play, and returns the log-probabilities and values (in the critic's scale) the
-  update needs; `value(...)` gives values alone (final observations of truncated agents).
+  update needs; `value(...)` gives values alone (final observations of truncated agents). With
+  `train.action_mask` the env's action masks (`Batch.masks`) bound the policy: masked actions get logit -inf when
+  acting and in the update's log-probabilities and entropy (`agents.losses.masked_logits`); without it the masks
+  are stored and ignored.
 - `update(batch, tc, progress)` runs A2C (one gradient step over the batch) or PPO (`ppo_epochs` passes of
   `ppo_minibatches` minibatches, clipped) for each network that trains this update, with advantages from
   GAE over the batch, advantage normalisation and value normalisation as configured, the learning rate
@@ -28,7 +31,7 @@ from typing import Any
 import torch
 
 from agents.config import TrainConfig, schedule, use_bf16
-from agents.losses import OPTIMIZERS, ValueNorm, actor_critic_loss, gae, normalize
+from agents.losses import OPTIMIZERS, ValueNorm, actor_critic_loss, gae, masked_logits, normalize
 from agents.model import BF16_GRADIENT_TOL, ActorCritic, bf16_gradient_error
 from cosim.errors import ConfigError
 
@@ -48,13 +51,16 @@ class Batch:
     terminated: torch.Tensor  # (T, W, N) bool
     truncated: torch.Tensor  # (T, W, N) bool
     final_values: torch.Tensor  # (T, W, N) value of the final observation of a truncated sample
+    masks: torch.Tensor  # (T, W, N, A) int8: the env's action mask each action was chosen under (1 = allowed)
 
     @classmethod
-    def allocate(cls, steps: int, workers: int, agents: int, obs_shape: tuple[int, ...], dtype: torch.dtype) -> Batch:
+    def allocate(cls, steps: int, workers: int, agents: int, obs_shape: tuple[int, ...], dtype: torch.dtype,
+                 n_actions: int) -> Batch:
         twn = (steps, workers, agents)
         return cls(torch.zeros((*twn, *obs_shape), dtype=dtype), torch.zeros(twn, dtype=torch.bool),
                    torch.zeros(twn, dtype=torch.int64), torch.zeros(twn), torch.zeros(twn), torch.zeros(twn),
-                   torch.zeros(twn, dtype=torch.bool), torch.zeros(twn, dtype=torch.bool), torch.zeros(twn))
+                   torch.zeros(twn, dtype=torch.bool), torch.zeros(twn, dtype=torch.bool), torch.zeros(twn),
+                   torch.ones((*twn, n_actions), dtype=torch.int8))  # every action allowed until collect writes
 
     def clear(self) -> None:
         for t in (self.valid, self.rewards, self.terminated, self.truncated, self.final_values):
@@ -83,6 +89,7 @@ class MultiAgentPolicy:
         self.n_agents = n_agents
         self.shared = tc.shared_policy
         self.disseminate_every = tc.disseminate_every
+        self.action_mask = tc.action_mask  # whether the env's action masks bound the policy
         self.device = torch.device(device)
         n_nets = 1 if self.shared else n_agents
         self.bf16 = use_bf16(tc.precision, tc.device) and _bf16_sound(obs_shape, n_actions, tc, self.device)
@@ -132,18 +139,24 @@ class MultiAgentPolicy:
         return out
 
     @torch.no_grad()
-    def act(self, obs: torch.Tensor, agents: torch.Tensor, update: int
+    def act(self, obs: torch.Tensor, agents: torch.Tensor, update: int, masks: torch.Tensor | None = None
             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Sampled actions, their log-probabilities and values (M,) for observations (M, F, C, H, W) of the AVs
-        `agents` (M,), one forward per network in play."""
+        `agents` (M,) under their action masks (M, A; None: every action allowed), one forward per network in
+        play."""
         m = len(agents)
         actions, logp, values = torch.zeros(m, dtype=torch.int64), torch.zeros(m), torch.zeros(m)
         for net, sel in self._groups(agents, update):
             logits, v = net(obs[sel].to(self.device))
-            dist = torch.distributions.Categorical(logits=logits)
+            dist = torch.distributions.Categorical(
+                logits=logits if masks is None else masked_logits(logits, self._mask(masks[sel])))
             a = dist.sample()
             actions[sel], logp[sel], values[sel] = a.cpu(), dist.log_prob(a).cpu(), v.cpu()
         return actions, logp, values
+
+    def _mask(self, masks: torch.Tensor) -> torch.Tensor | None:
+        """The masks the policy applies: the env's with `train.action_mask`, else none."""
+        return masks if self.action_mask else None
 
     @torch.no_grad()
     def value(self, obs: torch.Tensor, agents: torch.Tensor, update: int) -> torch.Tensor:
@@ -190,7 +203,7 @@ class MultiAgentPolicy:
             target = vn.normalize(ret.to(self.device))
         else:
             target = ret.to(self.device)
-        obs, actions, old_logp = b.obs[sel], b.actions[sel], b.logp[sel]
+        obs, actions, old_logp, masks = b.obs[sel], b.actions[sel], b.logp[sel], b.masks[sel]
         adv, old_logp, actions = adv.to(self.device), old_logp.to(self.device), actions.to(self.device)
         m = len(adv)
         if tc.algo == "ppo":
@@ -206,7 +219,8 @@ class MultiAgentPolicy:
                 logits, v = net(obs[idx].to(self.device))
                 a = adv[dev_idx]
                 terms = actor_critic_loss(logits, v, actions[dev_idx], normalize(a) if tc.normalize_advantage else a,
-                                          target[dev_idx], ent, tc.value_coef, old_logp[dev_idx], clip)
+                                          target[dev_idx], ent, tc.value_coef, old_logp[dev_idx], clip,
+                                          self._mask(masks[idx]))
                 opt.zero_grad(set_to_none=True)
                 terms.loss.backward()
                 grad_norm = torch.nn.utils.clip_grad_norm_(net.parameters(), tc.max_grad_norm)

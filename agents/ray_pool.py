@@ -280,7 +280,7 @@ class RayWorkerPool(PoolCommands):
                 if self._ready(w, dead_pid=dead_pid) != self.spec:
                     raise SimulationError(f"rollout actor {w} was restarted with another env spec") from None
                 self.obs[w] = 0
-                out.append(StepResult.lost_episode(n, failure_line(exc)))
+                out.append(StepResult.lost_episode(n, self.spec.n_actions, failure_line(exc)))
         return out
 
     def close(self) -> None:

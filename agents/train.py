@@ -57,7 +57,7 @@ from agents.config import TrainConfig, check_device, train_config
 from agents.logs import RunLogger, cut_logs, log_gaps
 from agents.multiagent import Batch, MultiAgentPolicy
 from agents.rollout import Backend
-from cosim.config import EVAL_SEED_START, Config, read_yaml
+from cosim.config import EVAL_SEED_START, Config, SafetyConfig, read_yaml
 from cosim.errors import ConfigError, EpisodeError, NetError
 from cosim.files import FolderLock, FolderState, atomic_write_text, stale_temporaries
 from cosim.progress import Heartbeat
@@ -93,10 +93,13 @@ def episode_seed(seed: int, update: int, worker: int) -> int:
     return int(np.random.SeedSequence([seed, update, worker]).generate_state(1)[0]) % EVAL_SEED_START
 
 
-# Train keys a resume may change without --allow-config-change: how long and how a run is run, not what it learns.
+# Keys a resume may change without --allow-config-change: how long and how a run is run, not what it learns; the
+# safety measures only count what happens (a run from before the section existed resumes without it).
 RESUMABLE = frozenset({"train.episodes", "train.budget_min", "train.checkpoint_every", "train.log_every",
                        "train.log_every_s", "train.step_timeout", "train.max_restarts", "train.torch_threads",
-                       "train.device"})
+                       "train.device", *(f"safety.{key}" for key in SafetyConfig.model_fields)})
+# What a run from before a key existed did, for the resume's comparison: it trained without action masks.
+UNRECORDED = {"train.action_mask": False}
 
 
 def run_config(cfg: Config, tc: TrainConfig) -> dict[str, Any]:
@@ -125,7 +128,7 @@ def config_changes(saved: Path, new: dict[str, Any]) -> dict[str, tuple[Any, Any
         raise ConfigError(f"--resume: {exc}; {hint}") from None
     if not isinstance(loaded, dict):
         raise ConfigError(f"--resume: {saved}: not a mapping of config sections; {hint}")
-    old = _flat(loaded)
+    old = {**UNRECORDED, **_flat(loaded)}
     now = _flat(yaml.safe_load(yaml.safe_dump(new)))  # the same YAML types on both sides
     return {k: (old.get(k), now.get(k)) for k in sorted(set(old) | set(now))
             if old.get(k) != now.get(k) and k not in RESUMABLE}
@@ -305,7 +308,7 @@ class _Run:
                          self.counters["episodes"])
             # Storage for one update, allocated once: T steps x W workers x N agents.
             self.batch = Batch.allocate(spec.max_steps, tc.workers, len(spec.agents), spec.obs_shape,
-                                        getattr(torch, spec.obs_dtype))
+                                        getattr(torch, spec.obs_dtype), spec.n_actions)
             # Every check passed: from here on the run folder changes.
             self.lock.acquire()
             for stale in stale_temporaries(out_dir, CHECKPOINT_NAME) + stale_temporaries(out_dir, POLICY_NAME):

@@ -351,6 +351,26 @@ def _whole_multiple(key: str, value: float, unit_key: str, unit: float, units: s
                        f"{count:.3g} {units}", key)
 
 
+class SafetyConfig(_Section):
+    """Surrogate safety measures beside crashes, as traffic-safety engineers count them, per episode of the episode
+    env (not in demand mode). With `sim.outputs` (every evaluation) SUMO's SSM device rides in every vehicle and
+    logs each conflict, an encounter in which a measure passes its threshold, with its worst value
+    (`cosim.sumo.outputs.read_ssm`); hard braking is counted from the snapshots, so every episode has it
+    (`cosim.environment.tracker`)."""
+
+    ssm: StrictBool = Field(
+        True, description="SUMO's SSM device with sim.outputs (about a third more time per episode); false: no "
+        "conflicts are counted")
+    ttc: Number = Field(1.5, gt=0, description="a time to collision below this is a conflict [s]")
+    drac: Number = Field(
+        3.4, gt=0, description="a deceleration rate to avoid a crash above this is a conflict (SUMO's default: 3) "
+        "[m/s^2]")
+    pet: Number = Field(2.0, gt=0, description="a post-encroachment time below this is a conflict [s]")
+    hard_braking: Number = Field(
+        4.0, gt=0, description="a vehicle whose speed falls by more than this times sim.decision_period from one "
+        "decision to the next brakes hard; consecutive such periods are one event [m/s^2]")
+
+
 class ScenarioConfig(_Section):
     """Where the vehicles start (cosim.sumo.scenario). Ranges [low, high] are drawn uniformly per episode seed.
 
@@ -652,6 +672,12 @@ class TrainConfig(_Section):
     step_timeout: Number = Field(
         60.0, gt=0, description="a worker silent this long is killed and restarted like a crashed one [s]")
     torch_threads: Int = Field(0, ge=0, description="torch intra-op threads of the learner; 0 keeps torch's default")
+    # On by default: a masked action is one that would do nothing (a lane change toward no through lane, which also
+    # draws the invalid_action penalty; accelerate at the top target speed, decelerate at 0), so the policy spends
+    # no probability or exploration on it, as MARL_CAVs does. Runs trained before it existed trained without it.
+    action_mask: StrictBool = Field(
+        True, description="the policy samples only the actions the env's infos['action_mask'] allows, in acting and "
+        "in the update (logits of masked actions -inf); recorded in the checkpoint, evaluation masks alike")
 
     @field_validator("device")
     @classmethod
@@ -688,6 +714,7 @@ class EvaluateConfig(_Section):
 class Config(_Section):
     net: NetConfig = Field(default_factory=NetConfig)
     sim: SimConfig = Field(default_factory=SimConfig)
+    safety: SafetyConfig = Field(default_factory=SafetyConfig)
     scenario: ScenarioConfig = Field(default_factory=ScenarioConfig)
     hv: DriverConfig = Field(default_factory=DriverConfig)
     # A merger section given in a file starts from DriverConfig's defaults, not from these.

@@ -10,7 +10,8 @@ Contract:
   agent truncated in that step. Only small results cross the pipes; nothing is pickled per observation.
 - Commands go to a subset of workers and their results are collected later, so that the learner can act
   for some workers while the others step: `send_reset(ws, seeds)`, `send_step(ws, actions)` (actions
-  (len(ws), N); agent i is `possible_agents[i]`), then `recv(ws)` -> one `StepResult` per worker. A worker's
+  (len(ws), N); agent i is `possible_agents[i]`), then `recv(ws)` -> one `StepResult` per worker, with each live
+  agent's action mask from its infos (`infos[a]["action_mask"]`; all ones where the env gives none). A worker's
   shared slots stay valid until its next command. Episodes do not reset by themselves: the step that ends one
   carries the env's `episode` summary and the caller decides what comes next.
 - A worker whose env raises, whose process dies or that stays silent for `timeout` seconds is killed and
@@ -188,16 +189,17 @@ class StepResult:
     reward: np.ndarray  # (N,) float32 reward of this step (0 for agents that did not act)
     terminated: np.ndarray  # (N,) bool: crashed / left; no bootstrap
     truncated: np.ndarray  # (N,) bool: cut (time limit, merge failed, another's crash): bootstrap from final[w]
+    action_mask: np.ndarray  # (N, A) int8: 1 = the agent may take the action next (zeros for agents not alive)
     reward_terms: dict[str, np.ndarray] = field(default_factory=dict)  # term name -> (N,) float32
     episode: dict[str, Any] | None = None  # the env's summary when this step ended the episode
     lost: bool = False  # the env failed: the worker was replaced, the running episode is lost
     error: str = ""  # why, when lost: the first line of the failure
 
     @classmethod
-    def lost_episode(cls, n: int, error: str = "") -> StepResult:
+    def lost_episode(cls, n: int, n_actions: int, error: str = "") -> StepResult:
         """The result of a worker that failed: no agent alive, the running episode lost."""
-        return cls(np.zeros(n, bool), np.zeros(n, np.float32), np.zeros(n, bool), np.zeros(n, bool), lost=True,
-                   error=error)
+        return cls(np.zeros(n, bool), np.zeros(n, np.float32), np.zeros(n, bool), np.zeros(n, bool),
+                   np.zeros((n, n_actions), np.int8), lost=True, error=error)
 
 
 class _EnvRunner:
@@ -227,12 +229,20 @@ class _EnvRunner:
         self.obs[~mask] = 0
         return mask
 
+    def _masks(self, infos: dict[str, dict], alive: np.ndarray) -> np.ndarray:
+        """(N, A) int8: each live agent's `action_mask` from its infos (all allowed where there is none)."""
+        out = np.zeros((len(self.agents), self.spec.n_actions), np.int8)
+        for i in np.flatnonzero(alive):
+            out[i] = infos.get(self.agents[i], {}).get("action_mask", 1)
+        return out
+
     def reset(self, seed: int | None) -> StepResult:
-        obs, _ = self.env.reset(seed=seed)
+        obs, infos = self.env.reset(seed=seed)
         self.length = 0
         n = len(self.agents)
         alive = self._write(obs, [a for a in self.env.agents if a in obs])
-        return StepResult(alive, np.zeros(n, np.float32), np.zeros(n, bool), np.zeros(n, bool))
+        return StepResult(alive, np.zeros(n, np.float32), np.zeros(n, bool), np.zeros(n, bool),
+                          self._masks(infos, alive))
 
     def step(self, actions: np.ndarray) -> StepResult:
         assert self.final is not None
@@ -260,7 +270,7 @@ class _EnvRunner:
             episode = None  # only reported when the episode is over
         elif episode is None:
             episode = {"length": self.length}
-        return StepResult(alive, reward, terminated, truncated, terms, episode)
+        return StepResult(alive, reward, terminated, truncated, self._masks(infos, alive), terms, episode)
 
 
 def _worker_main(conn: Connection, env_factory: EnvFactory, tmp_root: str) -> None:
@@ -541,7 +551,7 @@ class WorkerPool(PoolCommands):
             self._replace(w, failed[w])
             self.obs[w] = 0
             why = failure_line(failed[w])
-            out.append(StepResult.lost_episode(n, why) if lost is None else lost(why))
+            out.append(StepResult.lost_episode(n, self.spec.n_actions, why) if lost is None else lost(why))
         return out
 
     def close(self) -> None:

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from agents.fake_env import CueEnv
+from agents.fake_env import CueEnv, make_fake_env
 from cosim.workers import StepResult
 from sumo_net.build import build_merge_net
 from sumo_net.shapes import SHAPES, build_shape
@@ -35,15 +35,19 @@ def two_lane_net(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return build_merge_net(out, lanes=2, accel_length=80, upstream_length=100, downstream_length=500)
 
 
+MASKED = (3,)  # the actions the pool's envs in `delivers_exactly` mask
+
+
 def _delivers_exactly(pool: Any, dtype: str) -> list[StepResult]:
-    """Drive a 2-worker pool of `make_fake_env(n_agents=3, horizon=4, dtype=dtype)` through a whole episode
-    beside the same envs in this process, seeded alike: every observation, reward and final observation must
-    arrive bit for bit. Returns the last step's results."""
-    local = [CueEnv(n_agents=3, horizon=4, dtype=dtype) for _ in range(2)]
+    """Drive a 2-worker pool of `delivery_envs(dtype)` through a whole episode beside the same envs in this
+    process, seeded alike: every observation, reward and final observation must arrive bit for bit, and each live
+    agent's action mask (zeros for the others). Returns the last step's results."""
+    local = [CueEnv(n_agents=3, horizon=4, dtype=dtype, masked=MASKED) for _ in range(2)]
+    allowed = np.array([0 if a in MASKED else 1 for a in range(5)], dtype=np.int8)
     assert pool.obs.shape == (2, 3, 2, 4, 8, 16) and pool.obs.dtype == np.dtype(dtype)
     assert pool.spec.max_steps == 4
     pool.send_reset([0, 1], [11, 12])
-    pool.recv([0, 1])
+    assert all(r.action_mask.tolist() == [allowed.tolist()] * 3 for r in pool.recv([0, 1]))
     want = [env.reset(seed=s)[0] for env, s in zip(local, (11, 12), strict=True)]
     rng = np.random.default_rng(0)
     for _ in range(4):
@@ -56,6 +60,8 @@ def _delivers_exactly(pool: Any, dtype: str) -> list[StepResult]:
             want[w], rew, _, trunc, _ = local[w].step(dict(zip(local[w].possible_agents, actions[w].tolist(),
                                                                strict=True)))
             assert res.reward.tolist() == [rew[a] for a in local[w].possible_agents]
+            np.testing.assert_array_equal(res.action_mask, res.alive[:, None] * allowed)
+            assert res.action_mask.dtype == np.int8
             for i, a in enumerate(local[w].possible_agents):
                 if trunc[a]:  # truncated: the final observation is in the final slot
                     np.testing.assert_array_equal(pool.final[w, i], want[w][a])
@@ -65,3 +71,9 @@ def _delivers_exactly(pool: Any, dtype: str) -> list[StepResult]:
 @pytest.fixture
 def delivers_exactly() -> Callable[[Any, str], list[StepResult]]:
     return _delivers_exactly
+
+
+@pytest.fixture
+def delivery_envs() -> Callable[[str], Callable[[], CueEnv]]:
+    """dtype -> the env factory of the pool that `delivers_exactly` checks."""
+    return lambda dtype: make_fake_env(n_agents=3, horizon=4, dtype=dtype, masked=MASKED)

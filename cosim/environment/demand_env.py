@@ -15,7 +15,8 @@ truncated. Then SUMO is closed, its outputs parsed (`flow_outputs`) and, with th
 (`cosim.environment.flow_record.FlowRecorder`, also in `record.npz`), kept for the metrics
 (`cosim.evaluation.flow.window_metrics`); `last_summary` holds the run's summary (the last step's infos carry it
 too). A finished agent's last observation is zeros (its slot may serve an AV that entered in the same step).
-With `sim.av_driver: sumo` SUMO drives the AVs (the all-human baseline) and actions are ignored.
+With `sim.av_driver: sumo` SUMO drives the AVs (the all-human baseline) and actions are ignored. Live agents'
+infos carry `action_mask` as the episode env's do (`action_masks()`).
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from cosim.config import Config, check_seed
 from cosim.environment.control import N_ACTIONS, decide
 from cosim.environment.episode import MergeZone
 from cosim.environment.flow_record import FlowRecorder
-from cosim.environment.merge_env import ActionError, checked_action
+from cosim.environment.merge_env import ActionError, agent_masks, checked_action
 from cosim.environment.reward import StepChange, svo_rewards, utility_terms, weighted_utility
 from cosim.environment.velocity_map import VelocityMapper, rasterize_road
 from cosim.errors import ConfigError
@@ -134,6 +135,7 @@ class DemandEnv(ParallelEnv):
             self._idle_until_agents(infos)
         if self.steps >= self.max_steps:  # no AV in the whole run
             self._finish(infos)
+        self._add_masks(infos)
         return {a: self._obs(a) for a in self.agents}, infos
 
     def step(self, actions: Mapping[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
@@ -166,7 +168,16 @@ class DemandEnv(ParallelEnv):
         if self.steps >= self.max_steps and self.last_summary is None:
             self._finish(infos)
         obs = {a: self._obs(a) for a in set(acting) | set(self.agents)}
+        self._add_masks(infos)
         return obs, rew, term, trunc, infos
+
+    def action_masks(self) -> dict[str, np.ndarray]:
+        """Each live agent's action mask after the last reset/step, as in its infos (`MergeEnv.action_masks`)."""
+        return agent_masks(self.snapshot, self.zone, self.agents, [self._target[a] for a in self.agents], self.cfg.av)
+
+    def _add_masks(self, infos: dict[str, dict]) -> None:
+        for a, mask in self.action_masks().items():
+            infos.setdefault(a, {})["action_mask"] = mask
 
     # -- the decision -------------------------------------------------------------------------------
     def _checked(self, actions: Mapping[str, Any], acting: list[str]) -> dict[str, int]:

@@ -16,7 +16,9 @@ taken off the road after the decision step and the episode goes on. Every collis
 fault, cause: `cosim.environment.collisions`) in the episode summary.
 On the last step every agent's info carries `"episode"`, the episode's summary: the row of the
 `cosim.environment.tracker.EpisodeTracker` the env feeds every snapshot (`env.tracker`), with the seed and whether the
-merge failed. Observations are read-only views valid until the next step.
+merge failed. Observations are read-only views valid until the next step. Each live agent's infos carry
+`action_mask` at reset and every step (`action_masks()`: `cosim.environment.control.action_mask` of its lane, edge
+and target speed); the env takes any action whether or not anyone reads it.
 
 `step` is a template of small hooks: act -> simulate -> snapshot -> observe -> reward -> end. It takes an action for
 every live agent (`env.agents`): an unknown agent, a missing action or one that is not an integer in range (`Action`;
@@ -28,7 +30,9 @@ With `sim.outputs` each episode writes SUMO's tripinfo and induction-loop files 
 (`cosim.sumo.outputs.episode_folder`), over a window that is the same for every episode: `flush_outputs()` runs
 an episode that ended early on to the horizon (wrecks stay where they crashed, the AVs drive as SUMO's
 humans), completes the files and parses them into `env.sumo_outputs[seed]` (`cosim.sumo.outputs.SumoOutputs`);
-a reset or close without it completes them at the time the episode ended. With `sim.av_driver: sumo` the
+a reset or close without it completes them at the time the episode ended. With `safety.ssm` (the default) SUMO's
+SSM device rides along and its conflicts up to the episode's end (not the run-out's, when SUMO drives the AVs and
+the wrecks stand) are counted into the outputs (`cosim.sumo.outputs.conflict_counts`). With `sim.av_driver: sumo` the
 agents' actions are ignored and SUMO's own models drive the AVs (the all-human baseline).
 """
 
@@ -39,7 +43,7 @@ import logging
 import reprlib
 import shutil
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -48,8 +52,8 @@ import numpy as np
 from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
-from cosim.config import Config, check_seed, load_config
-from cosim.environment.control import N_ACTIONS, Action, decide
+from cosim.config import AVConfig, Config, check_seed, load_config
+from cosim.environment.control import N_ACTIONS, Action, action_mask, decide
 from cosim.environment.episode import EndCheck, MergeZone, episode_end, merge_status
 from cosim.environment.reward import StepChange, svo_rewards, utility_terms, weighted_utility
 from cosim.environment.tracker import EpisodeTracker
@@ -86,6 +90,21 @@ def checked_action(agent: str, value: Any) -> int:
         return int(value)
     raise ActionError(f"step(): agent {agent!r}: action {reprlib.repr(value)} ({type(value).__name__}) is not "
                       f"allowed; expected {ALLOWED_ACTIONS}")
+
+
+def agent_masks(snap: Snapshot, zone: MergeZone, agents: Sequence[str], targets: np.ndarray,
+                av: AVConfig) -> dict[str, np.ndarray]:
+    """Agent -> its action mask in `snap` (`cosim.environment.control.action_mask`), `targets` (len(agents),) their
+    target speeds [m/s]; an agent not on the road (none live is) may only idle."""
+    rows = snap.rows_of(agents)
+    present = rows >= 0
+    safe = np.maximum(rows, 0)
+    # Edge -1 indexes the zone's extra row, which has no usable lane.
+    edge = np.where(present, snap.edge[safe] if len(snap) else -1, -1)
+    lane = np.where(present, snap.lane[safe] if len(snap) else 0, 0)
+    mask = action_mask(lane, zone.through[edge], np.asarray(targets, dtype=np.float64), av)
+    mask[~present] = np.eye(N_ACTIONS, dtype=np.int8)[Action.IDLE]
+    return dict(zip(agents, mask, strict=True))
 
 
 class MergeEnv(ParallelEnv):
@@ -132,7 +151,8 @@ class MergeEnv(ParallelEnv):
         self.last_summary: dict[str, Any] | None = None  # the summary of the episode that ended last
 
     def new_tracker(self, record: bool = False) -> EpisodeTracker:
-        return EpisodeTracker(self.zone, self.chainage, record=record, cut_in_window=self.cfg.sim.cut_in_window)
+        return EpisodeTracker(self.zone, self.chainage, record=record, cut_in_window=self.cfg.sim.cut_in_window,
+                              hard_braking=self.cfg.safety.hard_braking, period=self.cfg.sim.decision_period)
 
     # -- PettingZoo API -----------------------------------------------------------------------------
     # One space object for all agents, as PettingZoo asks (no functools.cache: it would keep the env alive).
@@ -160,7 +180,7 @@ class MergeEnv(ParallelEnv):
             out_root = Path(self.cfg.sim.output_dir) if self.cfg.sim.output_dir else self._tmp / "outputs"
             folder = episode_folder(out_root, seed, busy=None if self._pending_outputs is None
                                     else self._pending_outputs[1])
-            extra = episode_output_args(folder, self.detectors)
+            extra = episode_output_args(folder, self.detectors, safety=self.cfg.safety)
         self.session.load(self.route_file, seed, extra)
         self._collect_outputs(end_time)  # the reload completed the previous episode's files
         if self.cfg.sim.outputs:
@@ -177,7 +197,8 @@ class MergeEnv(ParallelEnv):
         self.mapper.update(snap, rows)
         self._snap = snap
         obs = {a: self.mapper.observation(i) for i, a in enumerate(self.possible_agents)}
-        return obs, {a: {"seed": seed} for a in self.agents}
+        masks = self._masks(snap, self.agents)
+        return obs, {a: {"seed": seed, "action_mask": masks[a]} for a in self.agents}
 
     def step(self, actions: Mapping[str, int]) -> tuple[dict, dict, dict, dict, dict]:
         if self._snap is None:
@@ -201,6 +222,7 @@ class MergeEnv(ParallelEnv):
         ended_by = episode_end(EndCheck(snap, status, merged, self.tracker.steps, self.max_steps, self._stop_on,
                                         self.cfg.sim.end_on_stuck))
         cut = ended_by is not None
+        masks = self._masks(snap, acting)
         obs, rew, term, trunc, infos = {}, {}, {}, {}, {}
         for a in acting:
             i = self.possible_agents.index(a)
@@ -212,7 +234,7 @@ class MergeEnv(ParallelEnv):
             rew[a] = float(rewards[i])
             infos[a] = {"reward_terms": {k: float(v[i]) for k, v in terms.items()},
                         "ego_utility": float(ego_u[i]), "social_utility": float(social_u[i]),
-                        "invalid_action": bool(invalid[i]), "merged": merged}
+                        "invalid_action": bool(invalid[i]), "merged": merged, "action_mask": masks[a]}
         self.agents = [a for a in acting if not (term[a] or trunc[a])]
         if self.cfg.sim.on_collision == "remove" and snap.crashed.any():
             self.session.remove([v for v, c in zip(snap.ids, snap.crashed, strict=True) if c])
@@ -238,6 +260,15 @@ class MergeEnv(ParallelEnv):
         if self._snap is None:
             raise RuntimeError("no snapshot before reset()")
         return self._snap
+
+    def action_masks(self) -> dict[str, np.ndarray]:
+        """Each live agent's action mask after the last reset/step, as in its infos["action_mask"]: (N_ACTIONS,)
+        int8, 1 where the action would change something (`cosim.environment.control.action_mask`)."""
+        return self._masks(self.snapshot, self.agents)
+
+    def _masks(self, snap: Snapshot, agents: list[str]) -> dict[str, np.ndarray]:
+        idx = [self.possible_agents.index(a) for a in agents]
+        return agent_masks(snap, self.zone, agents, self._target[idx], self.cfg.av)
 
     def _checked_actions(self, actions: Mapping[str, Any]) -> dict[str, int]:
         """Every live agent's action as an int, or `ActionError`. The actions of agents that are done are
@@ -344,7 +375,8 @@ class MergeEnv(ParallelEnv):
             return
         seed, folder = self._pending_outputs
         self._pending_outputs = None
-        self.sumo_outputs[seed] = read_episode_outputs(folder, end_time)
+        # Conflicts while the agents drove, up to the episode's end (the tracker's last time), not those of the run-out.
+        self.sumo_outputs[seed] = read_episode_outputs(folder, end_time, self.cfg.safety, until=self.tracker.time)
 
     def close(self) -> None:
         self.session.close()

@@ -7,7 +7,13 @@ Contract:
   (any, by class and by cause), merge success (`cosim.environment.episode.merge_status`, the env's definition)
   and time to merge, distance [m] and mean speed [m/s] by class (over every vehicle seen), the merging
   vehicle's distance, the guide AV (nearest the merging vehicle when it merges, else at its last appearance)
-  and the guide's actions. `MergeEnv` owns one (its `infos["episode"]` summary is its row); with
+  and the guide's actions, and hard braking: a vehicle whose speed fell between two snapshots by more than
+  `hard_braking` [m/s^2] times the decision `period` [s] brakes hard (the same drop where a collision cut the last
+  period short, so that every period is judged alike); consecutive such periods are one event, and the row counts
+  the events of all vehicles and by class (a vehicle's stop in its own collision is none: the env stops a wreck at
+  once). At this resolution a braking shorter than a period counts only if it drops the speed that much: the
+  env's AVs, which brake at `av.decel` for half a second per decelerate action, never do.
+  `MergeEnv` owns one (its `infos["episode"]` summary is its row); with
   `record=True` it also keeps per-step trajectories (`trajectory()`) for plots.
 """
 
@@ -44,11 +50,17 @@ TRAJECTORY_COLUMNS = ("step", "vehicle", "kind", "s", "x", "y", "heading", "spee
 class EpisodeTracker:
     """Feed it each snapshot of one episode (reset first); read the episode's row at the end."""
 
-    def __init__(self, zone: MergeZone, chainage: Chainage, record: bool = False, cut_in_window: float = 2.0) -> None:
+    def __init__(self, zone: MergeZone, chainage: Chainage, record: bool = False, cut_in_window: float = 2.0,
+                 hard_braking: float = 4.0, period: float = 1.0) -> None:
         self.zone = zone
         self.chainage = chainage
         self.record = record
         self.cut_in_window = cut_in_window  # [s] see cosim.environment.collisions.attribute
+        self.hard_braking = hard_braking  # [m/s^2] see cosim.config.SafetyConfig.hard_braking
+        self.period = period  # [s] between two decisions (sim.decision_period)
+        self.hard_brakes: dict[str, int] = {}  # hard-braking events per vehicle
+        self._speed: dict[str, float] = {}  # [m/s] each vehicle's speed in the last snapshot
+        self._braking: set[str] = set()  # vehicles braking hard between the last two snapshots
         self.clock = LaneChangeClock()
         self.collisions: list[Attributed] = []
         self.distance: dict[str, float] = {}  # [m] last odometer reading per vehicle
@@ -93,6 +105,7 @@ class EpisodeTracker:
             speed_n[vid] = speed_n.get(vid, 0) + 1
         if snap.crashed.any():
             self.crashed.update(ids[i] for i in np.flatnonzero(snap.crashed))
+        self._count_hard_braking(ids, snap.speed.tolist())
         if self.merged_at is None:
             if status is None:  # the stuck test's thresholds do not matter here: only `merged` is read
                 status = merge_status(snap, self.zone, stuck_speed=0.0, stuck_distance=0.0)
@@ -103,6 +116,19 @@ class EpisodeTracker:
                 self.guide = guide_av(snap) or self.guide
         if self.record:
             self._record(snap, chain)
+
+    def _count_hard_braking(self, ids: tuple[str, ...], speeds: list[float]) -> None:
+        """Speed drops since the last snapshot beyond `hard_braking` x `period`; wrecks (`crashed`, updated first)
+        and vehicles new in this snapshot excluded."""
+        braking = set()
+        drop = self.hard_braking * self.period
+        for vid, v in zip(ids, speeds, strict=True):
+            if self._speed.get(vid, v) - v > drop and vid not in self.crashed:
+                braking.add(vid)
+                if vid not in self._braking:
+                    self.hard_brakes[vid] = self.hard_brakes.get(vid, 0) + 1
+        self._braking = braking
+        self._speed = dict(zip(ids, speeds, strict=True))
 
     def _record(self, snap: Snapshot, chain: np.ndarray) -> None:
         n = len(snap)
@@ -139,6 +165,9 @@ class EpisodeTracker:
                                    for c in self.collisions),
             "merged": self.merged_at is not None,
             "time_to_merge": math.nan if self.merged_at is None else self.merged_at,
+            "hard_brakes": sum(self.hard_brakes.values()),
+            **{f"hard_brakes_{name}": sum(n for v, n in self.hard_brakes.items() if self.kind[v] == k)
+               for k, name in CLASS_NAMES.items()},
             "n_vehicles": len(self.distance),
             "mean_distance": self._by_class(self.distance, None),
             "mean_speed": self._by_class(mean_speed, None),

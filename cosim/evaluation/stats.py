@@ -41,6 +41,18 @@ SUMMARY_METRICS: dict[str, tuple[str, float]] = {
     "mean speed [m/s]": ("window_speed", 1.0),
     "throughput [veh/h]": ("throughput_vph", 1.0),
     "time loss [s]": ("time_loss", 1.0),
+    # Surrogate safety while the agents drove (cosim.sumo.outputs.conflict_counts: SUMO's SSM device, the thresholds
+    # of the config's `safety:`) and hard braking (cosim.environment.tracker), counts per episode.
+    "conflicts [per episode]": ("conflicts", 1.0),
+    "conflicts, TTC [per episode]": ("conflicts_ttc", 1.0),
+    "conflicts, DRAC [per episode]": ("conflicts_drac", 1.0),
+    "conflicts, PET [per episode]": ("conflicts_pet", 1.0),
+    "conflicts with an AV [per episode]": ("conflicts_av", 1.0),
+    "conflicts with the merging vehicle [per episode]": ("conflicts_merger", 1.0),
+    "hard braking [events per episode]": ("hard_brakes", 1.0),
+    "hard braking, HVs [events per episode]": ("hard_brakes_hv", 1.0),
+    "hard braking, AVs [events per episode]": ("hard_brakes_av", 1.0),
+    "hard braking, merging vehicle [events per episode]": ("hard_brakes_merger", 1.0),
 }
 # A demand run's window (cosim.evaluation.flow.window_metrics), one row per seed: t-intervals over the seeds.
 FLOW_METRICS: dict[str, tuple[str, float]] = {

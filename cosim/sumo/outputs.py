@@ -17,6 +17,12 @@ Contract:
   unfinished trip counts up to the window's end, waiting to enter counts as lost, a removed wreck stands
   until the end: `read_tripinfo`), and each vehicle's driven distance (tripinfo routeLength, which equals
   SUMO's odometer) for cross-checks. Missing or truncated files raise `SimulationError` naming the file.
+- With a `safety` section whose `ssm` is on, `episode_output_args` also equips every vehicle with SUMO's SSM device
+  (`ssm_args`: time to collision, deceleration rate to avoid a crash, post-encroachment time, with the section's
+  thresholds; `folder/ssm.xml`), and `read_episode_outputs(..., safety, until)` counts its conflicts up to time
+  `until` [s] (the episode's end: after it SUMO drives the AVs and the wrecks stand, `cosim.environment.merge_env`)
+  into `SumoOutputs.safety` (`conflict_counts`). `read_ssm(path)` gives each conflict once (`Conflict`): SUMO logs
+  an encounter from both vehicles, ego and foe swapped; records of one pair whose times overlap are one conflict.
 """
 
 from __future__ import annotations
@@ -28,13 +34,17 @@ from pathlib import Path
 
 import numpy as np
 
+from cosim.config import SafetyConfig
 from cosim.errors import SimulationError
 from cosim.files import atomic_write_text
 from cosim.sumo.net import Net
+from cosim.sumo.scenario import kind_of
+from cosim.sumo.snapshot import KIND_AV, KIND_MERGER
 
 TRIPINFO_FILE = "tripinfo.xml"
 DETECTOR_FILE = "detectors.xml"
 ADDITIONAL_FILE = "detectors.add.xml"
+SSM_FILE = "ssm.xml"
 
 
 @dataclass(frozen=True)
@@ -59,8 +69,10 @@ def episode_folder(root: Path, seed: int, busy: Path | None = None) -> Path:
     return folder if folder != busy else root / f"episode_{seed}_1"
 
 
-def episode_output_args(folder: Path, site: DetectorSite, period: float = 1e6) -> list[str]:
-    """SUMO options for one episode's outputs in `folder` (created); one aggregation interval by default."""
+def episode_output_args(folder: Path, site: DetectorSite, period: float = 1e6,
+                        safety: SafetyConfig | None = None) -> list[str]:
+    """SUMO options for one episode's outputs in `folder` (created); one aggregation interval by default; the SSM
+    device's too where `safety.ssm` is on."""
     folder.mkdir(parents=True, exist_ok=True)
     loops = "".join(
         f'    <inductionLoop id="loop_{i}" lane="{lane}" pos="{site.pos:.2f}" period="{period:g}" '
@@ -70,7 +82,16 @@ def episode_output_args(folder: Path, site: DetectorSite, period: float = 1e6) -
     return ["--additional-files", str(additional),
             "--tripinfo-output", str(folder / TRIPINFO_FILE),
             "--tripinfo-output.write-unfinished", "true",
-            "--tripinfo-output.write-undeparted", "true"]
+            "--tripinfo-output.write-undeparted", "true",
+            *(ssm_args(folder, safety) if safety is not None and safety.ssm else ())]
+
+
+def ssm_args(folder: Path, safety: SafetyConfig) -> list[str]:
+    """SUMO's SSM device in every vehicle, logging into `folder/ssm.xml` the conflicts in which TTC falls below,
+    DRAC rises above or PET falls below the section's thresholds, each with its worst value (no trajectories)."""
+    return ["--device.ssm.probability", "1", "--device.ssm.measures", "TTC DRAC PET",
+            "--device.ssm.thresholds", f"{safety.ttc:g} {safety.drac:g} {safety.pet:g}",
+            "--device.ssm.file", str(folder / SSM_FILE)]
 
 
 @dataclass(frozen=True)
@@ -81,11 +102,12 @@ class SumoOutputs:
     mean_speed: float  # [m/s] mean over trips of distance driven / time in the window
     n_trips: int
     distance: dict[str, float] = field(default_factory=dict)  # [m] routeLength by vehicle id
+    safety: dict[str, float] = field(default_factory=dict)  # conflict_counts, where the SSM device was on
 
     def as_row(self) -> dict[str, float | int]:
         return {"throughput_vph": self.throughput_vph, "detector_count": self.detector_count,
                 "time_loss": self.time_loss, "window_speed": self.mean_speed,
-                "n_trips": self.n_trips}
+                "n_trips": self.n_trips, **self.safety}
 
 
 def _parse(path: Path) -> ET.Element:
@@ -121,8 +143,93 @@ def read_tripinfo(path: Path, end: float) -> list[dict[str, float | str]]:
     return trips
 
 
-def read_episode_outputs(folder: Path, duration: float) -> SumoOutputs:
-    """Parse one episode's complete output files; `duration` [s] is the simulated time they cover."""
+@dataclass(frozen=True)
+class Conflict:
+    """One conflict of the SSM device: the two vehicles, when, and each measure's worst value with its time [s]
+    (NaN where SUMO had none: a PET needs crossing paths)."""
+
+    ego: str
+    foe: str
+    begin: float  # [s]
+    end: float  # [s]
+    ttc: float  # [s] minimum time to collision
+    ttc_time: float
+    drac: float  # [m/s^2] maximum deceleration rate to avoid a crash
+    drac_time: float
+    pet: float  # [s] post-encroachment time
+    pet_time: float
+
+    def vehicles(self) -> tuple[str, str]:
+        return self.ego, self.foe
+
+
+# SSM element -> (Conflict field, the worse of two values, the episode's column of its worst value)
+_MEASURES = {"minTTC": ("ttc", min, "min_ttc"), "maxDRAC": ("drac", max, "max_drac"), "PET": ("pet", min, "min_pet")}
+
+
+def _number(text: str | None) -> float:
+    return math.nan if text in (None, "NA") else float(text)
+
+
+def read_ssm(path: Path) -> list[Conflict]:
+    """Each conflict of an SSM output file once, in order of begin (module doc)."""
+    records = []
+    for c in _parse(path).iter("conflict"):
+        worst: dict[str, float] = {}
+        for tag, (name, _, _) in _MEASURES.items():
+            e = c.find(tag)
+            worst[name] = math.nan if e is None else _number(e.get("value"))
+            worst[f"{name}_time"] = math.nan if e is None else _number(e.get("time"))
+        records.append(Conflict(c.get("ego", ""), c.get("foe", ""), float(c.get("begin", "nan")),
+                                float(c.get("end", "nan")), **worst))
+    records.sort(key=lambda r: (sorted(r.vehicles()), r.begin))
+    merged: list[Conflict] = []
+    for r in records:
+        last = merged[-1] if merged else None
+        if last is not None and sorted(last.vehicles()) == sorted(r.vehicles()) and r.begin <= last.end:
+            merged[-1] = _worse(last, r)
+        else:
+            merged.append(r)
+    return sorted(merged, key=lambda r: r.begin)
+
+
+def _worse(a: Conflict, b: Conflict) -> Conflict:
+    """One conflict from two records of a pair: the longer span, each measure's worse value and its time."""
+    values: dict[str, float] = {}
+    for name, worse, _ in _MEASURES.values():
+        known = [c for c in (a, b) if not math.isnan(getattr(c, name))] or [a]
+        pick = worse(known, key=lambda c: getattr(c, name))
+        values[name], values[f"{name}_time"] = getattr(pick, name), getattr(pick, f"{name}_time")
+    return Conflict(a.ego, a.foe, min(a.begin, b.begin), max(a.end, b.end), **values)
+
+
+def conflict_counts(conflicts: list[Conflict], safety: SafetyConfig, until: float) -> dict[str, float]:
+    """The episode's conflicts whose worst value passed its threshold at `until` [s] or before: in all, by measure,
+    with an AV, with the merging vehicle; and the worst TTC, DRAC and PET among them (NaN: none)."""
+    limits = {"ttc": safety.ttc, "drac": safety.drac, "pet": safety.pet}
+    counts = dict.fromkeys(("conflicts", *(f"conflicts_{m}" for m in limits), "conflicts_av", "conflicts_merger"),
+                           0.0)
+    worst = {column: math.nan for _, _, column in _MEASURES.values()}
+    for c in conflicts:
+        hits = [(name, worse, column) for name, worse, column in _MEASURES.values()
+                if getattr(c, f"{name}_time") <= until  # NaN (no value) compares False
+                and (getattr(c, name) < limits[name] if worse is min else getattr(c, name) > limits[name])]
+        if not hits:
+            continue
+        counts["conflicts"] += 1
+        kinds = {kind_of(v) for v in c.vehicles()}
+        counts["conflicts_av"] += KIND_AV in kinds
+        counts["conflicts_merger"] += KIND_MERGER in kinds
+        for name, worse, column in hits:
+            counts[f"conflicts_{name}"] += 1
+            worst[column] = getattr(c, name) if math.isnan(worst[column]) else worse(worst[column], getattr(c, name))
+    return {**counts, **worst}
+
+
+def read_episode_outputs(folder: Path, duration: float, safety: SafetyConfig | None = None,
+                         until: float | None = None) -> SumoOutputs:
+    """Parse one episode's complete output files; `duration` [s] is the simulated time they cover; with `safety`
+    (its `ssm` on) the SSM device's conflicts up to `until` [s] (default: `duration`) too."""
     count = read_detectors(folder / DETECTOR_FILE)
     trips = read_tripinfo(folder / TRIPINFO_FILE, duration)
 
@@ -138,4 +245,6 @@ def read_episode_outputs(folder: Path, duration: float) -> SumoOutputs:
         if any(t["duration"] > 0 for t in trips) else math.nan,
         n_trips=len(trips),
         distance={str(t["id"]): float(t["route_length"]) for t in trips},
+        safety=conflict_counts(read_ssm(folder / SSM_FILE), safety, duration if until is None else until)
+        if safety is not None and safety.ssm else {},
     )

@@ -1,12 +1,12 @@
-"""GAE / n-step advantages against hand-computed values, terminated vs truncated, the A2C and PPO losses,
-value normalisation."""
+"""GAE / n-step advantages against hand-computed values, terminated vs truncated, the A2C and PPO losses (with
+action masks too), value normalisation."""
 
 import math
 
 import pytest
 import torch
 
-from agents.losses import OPTIMIZERS, ValueNorm, actor_critic_loss, gae, normalize
+from agents.losses import OPTIMIZERS, ValueNorm, actor_critic_loss, gae, masked_logits, normalize
 
 
 def col(*values: float) -> torch.Tensor:
@@ -93,6 +93,23 @@ def test_a2c_loss_hand_computed() -> None:
     assert terms.loss.item() == pytest.approx(policy + 0.5 * value - 0.1 * math.log(5))
     terms.loss.backward()
     assert logits.grad is not None and values.grad is not None
+
+
+def test_masked_actions_leave_the_loss_and_its_gradient() -> None:
+    """Uniform logits over 5 actions, 2 of them masked in sample 0 and 4 in sample 1: log pi and the entropy are
+    those of the uniform policy over the allowed actions, and the masked logits get no gradient."""
+    logits = torch.zeros(2, 5, requires_grad=True)
+    mask = torch.tensor([[1, 1, 1, 0, 0], [0, 1, 0, 0, 0]], dtype=torch.int8)
+    actions, adv, ret = torch.tensor([0, 1]), torch.tensor([1.0, -3.0]), torch.zeros(2)
+    terms = actor_critic_loss(logits, torch.zeros(2), actions, adv, ret, entropy_coef=0.1, value_coef=0.5, mask=mask)
+    assert terms.policy.item() == pytest.approx(-(-math.log(3) * 1.0 + 0.0 * -3.0) / 2)
+    assert terms.entropy.item() == pytest.approx((math.log(3) + 0.0) / 2)
+    terms.loss.backward()
+    assert torch.isfinite(logits.grad).all() and (logits.grad[mask == 0] == 0).all()
+    assert (logits.grad[0, :3] != 0).all()
+    unmasked = actor_critic_loss(logits, torch.zeros(2), actions, adv, ret, entropy_coef=0.1, value_coef=0.5)
+    assert unmasked.policy.item() == pytest.approx(-(-math.log(5) * 1.0 + -math.log(5) * -3.0) / 2)
+    assert masked_logits(logits, None) is logits
 
 
 def test_ppo_clipped_loss_hand_computed() -> None:

@@ -39,7 +39,7 @@ LIVE = ((0, 0), (0, 1), (1, 2), (1, 0))  # (worker, agent) of live samples
 
 def random_batch(T: int = 3, W: int = 2, N: int = 3, seed: int = 0, obs: tuple[int, ...] = OBS) -> Batch:
     g = torch.Generator().manual_seed(seed)
-    b = Batch.allocate(T, W, N, obs, torch.float32)
+    b = Batch.allocate(T, W, N, obs, torch.float32, 5)
     b.obs[:] = torch.rand(b.obs.shape, generator=g)
     b.valid[:] = True
     b.actions[:] = torch.randint(0, 5, b.actions.shape, generator=g)
@@ -272,3 +272,50 @@ def test_bfloat16_gradients_are_checked_against_float32_for_the_networks_shape(f
     # Sound kernels (this shape, float32 reference): bfloat16 is kept.
     assert bf16_gradient_error(BF16_OBS, 5, 32, 16)[1] <= BF16_GRADIENT_TOL
     assert MultiAgentPolicy(3, BF16_OBS, 5, small_tc(**BF16)).bf16
+
+
+def random_masks(m: int, seed: int = 0) -> torch.Tensor:
+    """(m, 5) int8 masks with about half the actions masked; idle (1) always allowed, as the env's."""
+    g = torch.Generator().manual_seed(seed)
+    masks = (torch.rand(m, 5, generator=g) < 0.5).to(torch.int8)
+    masks[:, 1] = 1
+    return masks
+
+
+def test_masked_actions_are_never_sampled_and_their_logp_is_the_masked_one() -> None:
+    torch.manual_seed(0)
+    obs, agents, masks = torch.rand(300, *OBS), torch.zeros(300, dtype=torch.int64), random_masks(300)
+    policy = MultiAgentPolicy(1, OBS, 5, small_tc())
+    actions, logp, _ = policy.act(obs, agents, update=0, masks=masks)
+    assert masks[torch.arange(300), actions].all()  # never a masked action
+    with torch.no_grad():
+        logits, _ = policy.nets[0](obs)
+    want = torch.log_softmax(logits.masked_fill(masks == 0, float("-inf")), -1)[torch.arange(300), actions]
+    torch.testing.assert_close(logp, want)
+    # Without train.action_mask the masks are ignored: the same untrained policy then samples masked actions.
+    free = MultiAgentPolicy(1, OBS, 5, small_tc(action_mask=False))
+    free.nets[0].load_state_dict(policy.nets[0].state_dict())
+    sampled, _, _ = free.act(obs, agents, update=0, masks=masks)
+    assert not masks[torch.arange(300), sampled].all()
+
+
+@pytest.mark.parametrize("action_mask", [True, False])
+def test_the_update_takes_the_log_probabilities_of_the_distribution_that_acted(action_mask: bool) -> None:
+    """PPO's first minibatch of its first epoch sees the network that acted: the ratio is 1 (approx_kl 0) exactly
+    when the update masks as acting did; an update that ignores the masks sees other log-probabilities."""
+    tc = small_tc(algo="ppo", ppo_epochs=1, ppo_minibatches=1, action_mask=action_mask)
+    b = random_batch()
+    torch.manual_seed(0)
+    acting = MultiAgentPolicy(3, OBS, 5, small_tc(algo="ppo"))  # acts with the masks
+    t, w, n = b.valid.shape
+    b.masks[:] = random_masks(t * w * n).reshape(t, w, n, 5)
+    flat_obs, flat_masks = b.obs.reshape(-1, *OBS), b.masks.reshape(-1, 5)
+    actions, logp, values = acting.act(flat_obs, torch.arange(n).repeat(t * w), update=0, masks=flat_masks)
+    b.actions[:], b.logp[:], b.values[:] = (x.reshape(t, w, n) for x in (actions, logp, values))
+    torch.manual_seed(0)
+    learner = MultiAgentPolicy(3, OBS, 5, tc)  # the same initial network as `acting`
+    stats = learner.update(b, tc, update=0, progress=0.0)
+    if action_mask:
+        assert stats["approx_kl"] == pytest.approx(0.0, abs=1e-7) and stats["clip_fraction"] == 0.0
+    else:
+        assert stats["approx_kl"] > 1e-3

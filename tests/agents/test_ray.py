@@ -62,8 +62,8 @@ print(during == before, handlers() == before)
     assert proc.stdout.split() == ["True", "True"], proc.stdout + proc.stderr
 
 
-def test_actors_deliver_the_envs_observations_exactly(delivers_exactly) -> None:
-    pool = RayWorkerPool(make_fake_env(n_agents=3, horizon=4, dtype="uint8"), workers=2)
+def test_actors_deliver_the_envs_observations_exactly(delivers_exactly, delivery_envs) -> None:
+    pool = RayWorkerPool(delivery_envs("uint8"), workers=2)
     try:
         results = delivers_exactly(pool, "uint8")
         assert all(r.episode is not None and r.episode["length"] == 4 for r in results)  # no auto-reset

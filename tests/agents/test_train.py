@@ -241,6 +241,23 @@ def test_resume_refuses_a_changed_config_before_touching_the_run(tmp_path: Path)
     assert train_config(load_config(run / "config.yaml")).lr == 0.01
 
 
+def test_a_run_from_before_the_masks_and_safety_measures_resumes_as_it_trained(tmp_path: Path) -> None:
+    """Its config.yaml has no safety section (which only counts) and no train.action_mask (it trained without):
+    resuming it unmasked needs nothing more; with masks is a change of what it learns, refused naming the key."""
+    run = tmp_path / "run"
+    train(cfg_with(action_mask=False), run, workers=1, episodes=2, env_factory=make_fake_env(n_agents=2),
+          progress=False)
+    saved = yaml.safe_load((run / "config.yaml").read_text())
+    del saved["safety"], saved["train"]["action_mask"]
+    (run / "config.yaml").write_text(yaml.safe_dump(saved))
+    with pytest.raises(ConfigError, match=r"\(train\.action_mask: False -> True\);"):
+        train(cfg_with(), run, workers=1, episodes=4, resume=True, env_factory=make_fake_env(n_agents=2),
+              progress=False)
+    resumed = train(cfg_with(action_mask=False), run, workers=1, episodes=4, resume=True,
+                    env_factory=make_fake_env(n_agents=2), progress=False)
+    assert resumed.episodes == 4
+
+
 def test_a_killed_run_resumes_with_logs_cut_to_its_checkpoint(tmp_path: Path) -> None:
     run = tmp_path / "run"
     cfg = cfg_with(checkpoint_every=2)
@@ -266,3 +283,17 @@ def test_policy_file_is_small_and_loads_like_the_checkpoint(tmp_path: Path) -> N
     assert meta["path"].endswith("policy.pt") and set(small) == {"av_0", "av_1"}
     for a in small:
         assert all(torch.equal(v, full[a].state_dict()[k]) for k, v in small[a].state_dict().items())
+
+
+@pytest.mark.parametrize("action_mask", [True, False])
+def test_masked_actions_are_never_taken_in_training_and_the_setting_is_recorded(tmp_path: Path,
+                                                                               action_mask: bool) -> None:
+    """The fake env masks accelerate (its crash): with train.action_mask no training episode crashes; without it,
+    the untrained policy takes it about one step in five. The checkpoint records the setting for evaluation."""
+    run = tmp_path / "run"
+    result = train(cfg_with(action_mask=action_mask), run, workers=2, episodes=12,
+                   env_factory=make_fake_env(n_agents=2, masked=(3,)), progress=False)
+    crashes = sum(float(r["crashed"]) for r in episode_rows(run))
+    assert (crashes == 0) if action_mask else (crashes > 0)
+    assert read_checkpoint(result.checkpoint)["train"]["action_mask"] is action_mask
+    assert load_policy(run)[1]["train"]["action_mask"] is action_mask

@@ -160,12 +160,20 @@ def test_json_schema_states_units_and_bounds() -> None:
     defs = Config.model_json_schema()["$defs"]
     units = {("SimConfig", "step_length"): "[s]", ("ScenarioConfig", "speed_range"): "[m/s]",
              ("AVConfig", "accel"): "[m/s^2]", ("RewardConfig", "phi"): "[rad]", ("TrainConfig", "budget_min"): "[min]",
-             ("ScenarioConfig", "inflow"): "[veh/h]"}
+             ("ScenarioConfig", "inflow"): "[veh/h]", ("SafetyConfig", "ttc"): "[s]",
+             ("SafetyConfig", "drac"): "[m/s^2]", ("SafetyConfig", "pet"): "[s]",
+             ("SafetyConfig", "hard_braking"): "[m/s^2]"}
     for (section, key), unit in units.items():
         assert defs[section]["properties"][key]["description"].endswith(unit), (section, key)
     assert defs["SimConfig"]["properties"]["step_length"]["exclusiveMinimum"] == 0
     assert defs["TrainConfig"]["properties"]["gamma"]["maximum"] == 1
     assert defs["TrainConfig"]["properties"]["algo"]["enum"] == ["a2c", "ppo"]
+    assert defs["SafetyConfig"]["properties"]["ttc"]["exclusiveMinimum"] == 0
+    with pytest.raises(ConfigError) as caught:
+        load_config(None, {"safety.drac": -1, "safety.ttc_s": 1})
+    assert str(caught.value).splitlines() == [
+        "safety.drac: must be > 0, got -1",
+        "config key safety.ttc_s: unknown key; allowed: ssm, ttc, drac, pet, hard_braking"]
 
 
 @pytest.mark.parametrize("key", ["sim.seed", "train.seed", "evaluate.seed"])

@@ -34,8 +34,8 @@ def test_fake_env_passes_the_pettingzoo_parallel_api_test() -> None:
 
 
 @pytest.mark.parametrize("dtype", ["uint8", "float16", "float32"])
-def test_shared_memory_carries_the_envs_observations_exactly(dtype: str, delivers_exactly) -> None:
-    pool = WorkerPool(make_fake_env(n_agents=3, horizon=4, dtype=dtype), workers=2)
+def test_shared_memory_carries_the_envs_observations_exactly(dtype: str, delivers_exactly, delivery_envs) -> None:
+    pool = WorkerPool(delivery_envs(dtype), workers=2)
     try:
         results = delivers_exactly(pool, dtype)
         assert all(r.episode is not None and r.episode["length"] == 4 for r in results)  # no auto-reset
@@ -53,6 +53,7 @@ def test_crashed_agents_leave_and_others_go_on() -> None:
         (r,) = pool.recv([0])
         assert r.terminated.tolist() == [True, False] and r.reward[0] == -1.0
         assert r.alive.tolist() == [False, True] and r.episode is None
+        assert r.action_mask.tolist() == [[0] * 5, [1] * 5]  # an env without masks allows every action
         assert not pool.obs[0, 0].any() and pool.obs[0, 1].any()
     finally:
         pool.close()

@@ -60,14 +60,18 @@ def test_avs_come_and_go_in_slots_and_a_crash_leaves_the_run_going() -> None:
     try:
         assert env.possible_agents == [f"av_{i}" for i in range(env.demand.max_avs)]
         obs, _ = env.reset(seed=5)
-        seen, finished, steps, max_present = set(env.agents), set(), 0, len(env.agents)
+        seen, finished, steps, max_present, at_top = set(env.agents), set(), 0, len(env.agents), False
         while env.agents:
             # AVs that accelerate without end run into the traffic ahead.
             obs, rew, term, trunc, infos = env.step(dict.fromkeys(env.agents, int(Action.ACCELERATE)))
             steps += 1
+            masks = env.action_masks()
             for a in env.agents:
                 assert a not in finished  # a name is never reused
                 assert obs[a].shape == env.observation_space(a).shape
+                # Each live agent's mask in its infos, newcomers' too; accelerating without end reaches the top.
+                assert np.array_equal(infos[a]["action_mask"], masks[a]) and masks[a][Action.IDLE] == 1
+            at_top |= any(m[Action.ACCELERATE] == 0 for m in masks.values())
             finished |= {a for a in term if term[a] or trunc[a]}
             seen |= set(env.agents)
             max_present = max(max_present, len(env.agents))
@@ -75,7 +79,7 @@ def test_avs_come_and_go_in_slots_and_a_crash_leaves_the_run_going() -> None:
         assert env.steps == env.max_steps  # the run went on to its horizon
         assert len(seen) > max_present  # AVs came and went, their slots handed on
         assert any(info.get("crashed") for info in infos.values()) or env.last_record["crashed"].size
-        assert env.last_summary["avs_released"] == len(seen)
+        assert env.last_summary["avs_released"] == len(seen) and at_top
         assert (env.out_dir / "record.npz").is_file() and env.last_outputs.passages
     finally:
         env.close()

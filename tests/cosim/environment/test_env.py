@@ -12,10 +12,11 @@ from pettingzoo.test import parallel_api_test
 
 import cosim
 from cosim.environment.control import Action
-from cosim.environment.merge_env import ActionError, MergeEnv
+from cosim.environment.merge_env import ActionError, MergeEnv, agent_masks
 from cosim.environment.policies import scripted_policy
 from cosim.environment.tracker import EpisodeTracker
 from cosim.errors import SimulationError
+from cosim.sumo.snapshot import KIND_AV, Snapshot
 
 pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
@@ -120,6 +121,55 @@ def test_lane_change_toward_no_lane_is_flagged_noop(env: MergeEnv) -> None:
     assert info[agent]["invalid_action"]
     assert info[agent]["reward_terms"]["invalid_action"] < 0
     assert info[agent]["reward_terms"]["lane_change"] == 0
+
+
+def test_action_masks_of_a_hand_built_situation() -> None:
+    """On the dilemma net's merge edge (lane 0 the acceleration lane, 1 and 2 through lanes): the leftmost through
+    lane cannot go left, the lane beside the acceleration lane cannot go right; nor can the approach's right lane,
+    nor anyone inside a junction; accelerate is masked at the top target speed, decelerate at 0; an AV not on the
+    road may only idle."""
+    env = cosim.parallel_env("configs/default.yaml")
+    try:
+        index, desc = env.road.index_of, env.net.desc
+        assert desc.accel_lanes == (0,) and env.net.through_lanes(desc.merge_edge) == (1, 2)
+        junction = next(e for e in env.road.internal if env.road.internal[e][0].from_edge == desc.highway[0])
+        edges = [index[desc.merge_edge], index[desc.merge_edge], index[desc.highway[0]], index[junction]]
+        snap = Snapshot.build(ids=["av_0", "av_1", "av_2", "av_3"], kind=[KIND_AV] * 4, edge=edges, lane=[2, 1, 0, 0])
+        av = env.cfg.av
+        masks = agent_masks(snap, env.zone, ["av_0", "av_1", "av_2", "av_3", "av_9"],
+                            np.array([av.max_speed, 0.0, 20.0, 20.0, 20.0]), av)
+    finally:
+        env.close()
+    # columns: LANE_LEFT, IDLE, LANE_RIGHT, ACCELERATE, DECELERATE
+    assert {a: m.tolist() for a, m in masks.items()} == {
+        "av_0": [0, 1, 1, 0, 1], "av_1": [1, 1, 0, 1, 0], "av_2": [1, 1, 0, 1, 1], "av_3": [0, 1, 0, 1, 1],
+        "av_9": [0, 1, 0, 0, 0]}
+    assert all(m.dtype == np.int8 for m in masks.values())
+
+
+def test_infos_mask_exactly_the_actions_that_would_change_nothing() -> None:
+    """Random play on the dilemma: every live agent's infos carry its mask (also `action_masks()`), and a lane
+    change the mask forbade is exactly one the env flags invalid."""
+    env = cosim.parallel_env("configs/default.yaml")
+    rng = np.random.default_rng(0)
+    seen = {0: 0, 1: 0}
+    try:
+        for seed in (1, 2):
+            _, infos = env.reset(seed=seed)
+            while env.agents:
+                masks = {a: infos[a]["action_mask"] for a in env.agents}
+                assert set(masks) == set(env.agents) and all(m.shape == (5,) and m[Action.IDLE] for m in
+                                                             masks.values())
+                assert all(np.array_equal(m, masks[a]) for a, m in env.action_masks().items())
+                actions = {a: int(rng.choice([Action.LANE_LEFT, Action.LANE_RIGHT, Action.IDLE])) for a in env.agents}
+                _, _, _, _, infos = env.step(actions)
+                for a, act in actions.items():
+                    if act != Action.IDLE:
+                        assert infos[a]["invalid_action"] == (masks[a][act] == 0), (seed, a, act)
+                        seen[int(masks[a][act])] += 1
+    finally:
+        env.close()
+    assert seen[0] > 0 and seen[1] > 0  # both kinds happened
 
 
 def test_accelerate_and_decelerate_change_speed(env: MergeEnv) -> None:

@@ -92,3 +92,30 @@ def test_tracker_merge_is_the_envs_merge_status() -> None:
     tr.observe(_snap(1.1, ids, kinds, [20, 50], [0, 1], [1, 0], [20, 9]), {"av_0": 1},
                MergeStatus(row=1, merged=True, stuck=False, crashed=False))
     assert tr.row()["merged"] and tr.row()["time_to_merge"] == pytest.approx(1.1)
+
+
+def test_hard_braking_events_by_vehicle_and_class() -> None:
+    """Speeds per decision period of 1 s against the 4 m/s^2 threshold: the HV brakes hard for two periods (one
+    event), eases, then again (a second); the AV's drops stay at 4 m/s and below; the merging vehicle's one hard
+    drop is the stop of its own crash, no braking; the late HV brakes hard from its first period on. The last
+    period, cut to 0.3 s (a collision ends the episode there), is judged by the same drop: the AV's 1.5 m/s (5 m/s^2
+    for 0.3 s) is not hard braking, the late HV's 4.5 m/s is."""
+    ids, kinds = ["av_0", "hv_0", "merger", "hv_1"], [KIND_AV, KIND_HV, KIND_MERGER, KIND_HV]
+    speeds = {"av_0": [20, 16, 12, 12, 8, 8, 6.5], "hv_0": [20, 15, 10, 9.5, 3, 3, 3],
+              "merger": [15, 15, 14, 0, 0, 0, 0], "hv_1": [None, None, None, 20, 10, 10, 5.5]}
+    times = [0.1, 1.1, 2.1, 3.1, 4.1, 5.1, 5.4]
+    tr = EpisodeTracker(ZONE, CHAIN, hard_braking=4.0, period=1.0)
+    for k, t in enumerate(times):
+        here = [i for i, v in enumerate(ids) if speeds[v][k] is not None]
+        tr.observe(_snap(t, [ids[i] for i in here], [kinds[i] for i in here], [10.0 * k] * len(here),
+                         [0] * len(here), [1] * len(here), [10.0 * k] * len(here),
+                         speed=[float(speeds[ids[i]][k]) for i in here],
+                         crashed=[k == 3 and ids[i] == "merger" for i in here]), {})
+    row = tr.row()
+    assert tr.hard_brakes == {"hv_0": 2, "hv_1": 2}
+    assert (row["hard_brakes"], row["hard_brakes_hv"], row["hard_brakes_av"], row["hard_brakes_merger"]) == (4, 4, 0, 0)
+    # A lower threshold: the AV's 4 m/s drops too, in two events (a steady period between them).
+    low = EpisodeTracker(ZONE, CHAIN, hard_braking=3.9)
+    for k in range(6):
+        low.observe(_snap(times[k], ["av_0"], [KIND_AV], [0.0], [0], [1], [0.0], speed=[float(speeds["av_0"][k])]))
+    assert low.hard_brakes == {"av_0": 2}

@@ -17,6 +17,7 @@ from agents.checkpoint import CheckpointError, TrainedPolicy, act_agents, save_c
 from agents.model import ActorCritic
 from cosim.cli import main
 from cosim.config import load_config
+from cosim.environment.control import Action
 from cosim.errors import ConfigError, CosimError, NetError
 from cosim.evaluation.compare import compare
 from cosim.evaluation.runner import Baseline, Job, evaluate, run_episodes
@@ -51,7 +52,9 @@ def test_evaluation_files_and_summary(idle_eval: Path) -> None:
     for key in ("length", "crashed", "crash_av", "crash_hv", "crash_merger", "merged", "merge_failed",
                 "time_to_merge", "mean_distance", "av_distance",
                 "hv_distance", "merger_distance", "av_speed", "guide_av", "guide_actions", "throughput_vph",
-                "time_loss", "window_speed", "distance_check"):
+                "time_loss", "window_speed", "distance_check", "conflicts", "conflicts_ttc", "conflicts_drac",
+                "conflicts_pet", "conflicts_av", "conflicts_merger", "min_ttc", "hard_brakes", "hard_brakes_hv",
+                "hard_brakes_av", "hard_brakes_merger"):
         assert key in rows[0], key
     assert all(float(r["distance_check"]) < 0.01 for r in rows)  # our distance and SUMO's agree
     assert all(r["guide_av"].startswith("av_") for r in rows)
@@ -60,6 +63,9 @@ def test_evaluation_files_and_summary(idle_eval: Path) -> None:
     crash = summary["metrics"]["crash [%]"]
     assert crash["n"] == 3 and 0 <= crash["ci_low"] <= crash["mean"] <= crash["ci_high"] <= 100
     assert summary["metrics"]["throughput [veh/h]"]["mean"] > 0
+    for label in ("conflicts with an AV [per episode]", "hard braking, merging vehicle [events per episode]"):
+        assert summary["metrics"][label]["n"] == 3, label  # in every episode's row, with an interval
+    assert (idle_eval / "sumo" / "episode_100" / "ssm.xml").is_file()
     assert (idle_eval / "trajectories" / "seed_100.npz").is_file()
     assert not (idle_eval / "trajectories" / "seed_101.npz").exists()
     for name in ("merger_distance.png", "timespace_seed_100.png", "topview_seed_100.png"):
@@ -133,12 +139,36 @@ def test_workers_give_the_same_rows(tmp_path: Path) -> None:
     assert [r["mean_distance"] for r in one] == [r["mean_distance"] for r in two]
 
 
-def _tiny_checkpoint(path: Path, obs_shape: tuple[int, ...], updates: int = 1, shared: bool = True) -> None:
+def _tiny_checkpoint(path: Path, obs_shape: tuple[int, ...], updates: int = 1, shared: bool = True,
+                     train: dict | None = None, prefer: dict[int, float] | None = None) -> None:
+    """`train`: the checkpoint's train section (none by default, as before it was saved); `prefer`: action -> a
+    bias added to its logit, so that the greedy policy takes the most preferred."""
     nets = [ActorCritic(obs_shape, 5, feature_dim=8, head_hidden=8) for _ in range(1 if shared else 4)]
+    for net in nets:
+        with torch.no_grad():
+            for action, bias in (prefer or {}).items():
+                net.actor[-1].bias[action] += bias
     spec = {"agents": [f"av_{i}" for i in range(4)], "obs_shape": list(obs_shape), "obs_dtype": "float32",
             "n_actions": 5, "shared_policy": shared, "feature_dim": 8, "head_hidden": 8}
     save_checkpoint(path, {"spec": spec, "policy": {"nets": [n.state_dict() for n in nets]},
-                           "counters": {"updates": updates}, "rng": {}})
+                           "counters": {"updates": updates}, "rng": {}, **({"train": train} if train else {})})
+
+
+@pytest.mark.parametrize("masked", [True, False])
+def test_a_policy_trained_with_action_masks_is_evaluated_with_the_envs(tmp_path: Path, masked: bool) -> None:
+    """A network that prefers lane-right above all, then accelerate: the AVs drive in the right through lane, where
+    lane-right is masked, so a run trained with masks evaluates with them and never takes it; one trained without
+    always does (the env ignores it)."""
+    cfg = _cfg()
+    shape = (cfg.observation.frames, len(cfg.observation.channels), cfg.observation.height_px,
+             cfg.observation.width_px)
+    path = tmp_path / "checkpoint.pt"
+    _tiny_checkpoint(path, shape, train={"action_mask": masked}, prefer={Action.LANE_RIGHT: 100.0,
+                                                                        Action.ACCELERATE: 50.0})
+    evaluate(cfg, TrainedPolicy(str(path)), tmp_path / "ev", episodes=1, seed=5, trajectories=0, plots=False)
+    actions = read_csv(tmp_path / "ev" / "episodes.csv")[0]["guide_actions"].split()
+    assert actions and (str(int(Action.LANE_RIGHT)) not in actions if masked else
+                        set(actions) == {str(int(Action.LANE_RIGHT))})
 
 
 def test_act_agents_batches_agents_sharing_a_network() -> None:

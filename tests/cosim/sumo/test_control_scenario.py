@@ -1,4 +1,4 @@
-"""Meta-action decisions (pure) and the seeded episode plan (pure, on the real default net)."""
+"""Meta-action decisions and action masks (pure) and the seeded episode plan (pure, on the real default net)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cosim.config import AVConfig, load_config
-from cosim.environment.control import Action, decide
+from cosim.environment.control import Action, action_mask, decide
 from cosim.errors import ConfigError
 from cosim.sumo.net import load_net
 from cosim.sumo.resolve import resolve
@@ -37,6 +37,26 @@ def test_decide_speed_and_lanes() -> None:
     assert d.invalid.tolist() == [True]  # no lane change on a junction-internal edge
     with pytest.raises(ValueError, match="actions must be in 0..4"):
         decide(np.array([7]), np.array([0]), np.ones((1, 4), dtype=bool), np.zeros(1), AV)
+
+
+def test_action_mask_allows_exactly_the_actions_decide_would_carry_out() -> None:
+    """For random lanes, usable lanes and target speeds (the bounds included): an action is allowed iff `decide`
+    changes the lane or the target speed with it; idle is always allowed."""
+    rng = np.random.default_rng(0)
+    n = 400
+    lanes = rng.integers(0, 4, n)
+    usable = rng.random((n, 4)) < 0.6
+    targets = rng.choice([0.0, 1.0, 15.0, 29.5, AV.max_speed], n)
+    mask = action_mask(lanes, usable, targets, AV)
+    assert mask.shape == (n, 5) and mask.dtype == np.int8 and mask[:, Action.IDLE].all()
+    for a in Action:
+        if a == Action.IDLE:
+            continue
+        d = decide(np.full(n, a), lanes, usable, targets, AV)
+        acts = (d.lane_change != 0) | (d.target_speed != targets)
+        assert (mask[:, a] == acts).all(), a
+    for a in (Action.LANE_LEFT, Action.LANE_RIGHT, Action.ACCELERATE, Action.DECELERATE):
+        assert 0 < mask[:, a].sum() < n  # each is masked somewhere and allowed elsewhere
 
 
 @pytest.fixture(scope="module")

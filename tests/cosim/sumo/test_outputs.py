@@ -2,24 +2,30 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 import cosim
+from cosim.config import SafetyConfig
+from cosim.environment.control import Action
 from cosim.environment.policies import POLICIES
 from cosim.environment.tracker import EpisodeTracker
 from cosim.errors import SimulationError
 from cosim.sumo.net import load_net
 from cosim.sumo.outputs import (
     DETECTOR_FILE,
+    SSM_FILE,
     TRIPINFO_FILE,
+    conflict_counts,
     detector_site,
     episode_folder,
     episode_output_args,
     read_detectors,
     read_episode_outputs,
+    read_ssm,
     read_tripinfo,
 )
 
@@ -35,6 +41,104 @@ LOOPS = """<detector>
     <interval begin="0.00" end="20.00" id="loop_1" nVehContrib="2" nVehEntered="2"/>
 </detector>
 """
+
+
+# SSM output as SUMO 1.28 writes it (no trajectories): the pair av_0/hv_2 twice, ego and foe swapped, overlapping;
+# merger/hv_5 once, its worst TTC after the episode's end (12 s below); hv_7/hv_8 with a DRAC conflict only; an
+# encounter of av_1/hv_3 whose values all stay on the safe side of the thresholds.
+SSM = """<SSMLog>
+    <conflict begin="0.00" end="9.00" ego="av_0" foe="hv_2">
+        <minTTC time="7.90" position="1,2" type="2" value="0.80" speed="20.00"/>
+        <maxDRAC time="7.80" position="1,2" type="2" value="3.00" speed="20.00"/>
+        <PET time="NA" position="NA" type="NA" value="NA" speed="NA"/>
+    </conflict>
+    <conflict begin="1.20" end="9.50" ego="hv_2" foe="av_0">
+        <minTTC time="7.90" position="1,2" type="3" value="0.80" speed="20.00"/>
+        <maxDRAC time="8.00" position="1,2" type="3" value="3.60" speed="20.00"/>
+        <PET time="NA" position="NA" type="NA" value="NA" speed="NA"/>
+    </conflict>
+    <conflict begin="10.00" end="15.00" ego="merger" foe="hv_5">
+        <minTTC time="13.00" position="1,2" type="2" value="1.00" speed="5.00"/>
+        <maxDRAC time="11.00" position="1,2" type="2" value="1.00" speed="5.00"/>
+        <PET time="11.50" position="1,2" type="4" value="1.20" speed="5.00"/>
+    </conflict>
+    <conflict begin="2.00" end="6.00" ego="hv_7" foe="hv_8">
+        <minTTC time="NA" position="NA" type="NA" value="NA" speed="NA"/>
+        <maxDRAC time="3.00" position="1,2" type="2" value="5.00" speed="9.00"/>
+        <PET time="NA" position="NA" type="NA" value="NA" speed="NA"/>
+    </conflict>
+    <conflict begin="2.00" end="6.00" ego="av_1" foe="hv_3">
+        <minTTC time="4.00" position="1,2" type="2" value="2.50" speed="9.00"/>
+        <maxDRAC time="3.00" position="1,2" type="2" value="1.00" speed="9.00"/>
+        <PET time="NA" position="NA" type="NA" value="NA" speed="NA"/>
+    </conflict>
+</SSMLog>
+"""
+
+
+def test_ssm_conflicts_are_counted_once_by_measure_and_by_party(tmp_path: Path) -> None:
+    (tmp_path / SSM_FILE).write_text(SSM)
+    conflicts = read_ssm(tmp_path / SSM_FILE)
+    assert [sorted(c.vehicles()) for c in conflicts] == [["av_0", "hv_2"], ["av_1", "hv_3"], ["hv_7", "hv_8"],
+                                                       ["hv_5", "merger"]]
+    first = conflicts[0]  # both records of the pair, their span and each measure's worse value
+    assert (first.begin, first.end, first.ttc, first.drac, first.drac_time) == (0.0, 9.5, 0.8, 3.6, 8.0)
+    assert math.isnan(first.pet) and math.isnan(first.pet_time)
+    safety = SafetyConfig()  # TTC < 1.5 s, DRAC > 3.4 m/s^2, PET < 2 s
+    late = conflict_counts(conflicts, safety, until=20.0)
+    assert late == {"conflicts": 3, "conflicts_ttc": 2, "conflicts_drac": 2, "conflicts_pet": 1, "conflicts_av": 1,
+                    "conflicts_merger": 1, "min_ttc": 0.8, "max_drac": 5.0, "min_pet": 1.2}
+    # Up to 12 s the merging vehicle's worst TTC (13 s) is not in, its PET (11.5 s) is.
+    early = conflict_counts(conflicts, safety, until=12.0)
+    assert [early[k] for k in ("conflicts", "conflicts_ttc", "conflicts_pet", "conflicts_merger")] == [3, 1, 1, 1]
+    # Before any worst value: nothing; stricter thresholds: fewer.
+    none = conflict_counts(conflicts, safety, until=2.0)
+    assert none["conflicts"] == 0 and math.isnan(none["min_ttc"]) and math.isnan(none["max_drac"])
+    strict = conflict_counts(conflicts, SafetyConfig(ttc=0.9, drac=4.0, pet=1.0), until=20.0)
+    assert (strict["conflicts"], strict["conflicts_ttc"], strict["conflicts_drac"]) == (2, 1, 1)
+
+
+def test_the_ssm_device_is_asked_for_only_where_the_safety_section_wants_it(tmp_path: Path) -> None:
+    site = detector_site(load_net("sumo_net/dilemma/dilemma.net.xml"), 100.0)
+    args = episode_output_args(tmp_path, site, safety=SafetyConfig(ttc=1.0, drac=3.0, pet=2.5))
+    assert args[args.index("--device.ssm.thresholds") + 1] == "1 3 2.5"
+    assert args[args.index("--device.ssm.measures") + 1] == "TTC DRAC PET"
+    assert args[args.index("--device.ssm.file") + 1] == str(tmp_path / SSM_FILE)
+    for off in (None, SafetyConfig(ssm=False)):
+        assert not any(a.startswith("--device.ssm") for a in episode_output_args(tmp_path, site, safety=off))
+
+
+def test_a_missing_or_truncated_ssm_file_is_a_clear_error(tmp_path: Path) -> None:
+    (tmp_path / TRIPINFO_FILE).write_text(TRIPS)
+    (tmp_path / DETECTOR_FILE).write_text(LOOPS)
+    assert read_episode_outputs(tmp_path, 20.0).safety == {}  # without a safety section: not read
+    with pytest.raises(SimulationError, match=rf"{tmp_path / SSM_FILE}: not found"):
+        read_episode_outputs(tmp_path, 20.0, SafetyConfig())
+    (tmp_path / SSM_FILE).write_text(SSM[:300])
+    with pytest.raises(SimulationError, match=rf"{tmp_path / SSM_FILE}: incomplete"):
+        read_episode_outputs(tmp_path, 20.0, SafetyConfig())
+    assert read_episode_outputs(tmp_path, 20.0, SafetyConfig(ssm=False)).safety == {}
+
+
+def test_sumo_logs_the_conflict_of_a_crash_with_its_parties(tmp_path: Path) -> None:
+    """Idle AVs run into the slower stream on this seed: SUMO's SSM device has the crash's pair, at TTC 0, as one
+    conflict with an AV, counted up to the episode's end; episodes.csv's columns come from the outputs' row."""
+    env = cosim.parallel_env("configs/default.yaml", {"sim.outputs": True, "sim.output_dir": str(tmp_path)})
+    try:
+        env.reset(seed=10_000_000)
+        while env.agents:
+            env.step(dict.fromkeys(env.agents, int(Action.IDLE)))
+        collision = env.tracker.collisions[0]
+        end = env.tracker.time
+        env.flush_outputs()
+    finally:
+        env.close()
+    out = env.sumo_outputs[10_000_000]
+    crash = [c for c in read_ssm(tmp_path / "episode_10000000" / SSM_FILE)
+             if sorted(c.vehicles()) == sorted((collision.collider, collision.victim))]
+    assert len(crash) == 1 and crash[0].ttc == 0.0 and crash[0].ttc_time == pytest.approx(collision.time, abs=0.11)
+    assert out.safety["conflicts_av"] >= 1 and out.safety["min_ttc"] == 0.0 and end < 20.0
+    assert out.as_row()["conflicts"] == out.safety["conflicts"]
 
 
 def crossings(trajectory: dict[str, np.ndarray], s: float) -> int:
