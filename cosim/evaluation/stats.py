@@ -124,8 +124,9 @@ def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95,
     """Metric label -> {mean, ci_low, ci_high, n} over the episodes (or a demand run's seeds); metrics missing from
     the rows are left out (`metrics`: SUMMARY_METRICS and FLOW_METRICS by default).
 
-    Rates (`RATE_METRICS`) get Wilson score intervals, every other metric a t-interval (module doc); a flow
-    metric's t-interval over few seeds is cut at 0 (and a share's at 100%), what the quantity can take."""
+    Rates (`RATE_METRICS`) get Wilson score intervals, every other metric a t-interval (module doc); every metric
+    here is a count, distance, time, speed or share, so a t-interval over few values is cut at 0 (and a share's
+    at 100%), what the quantity can take."""
     out = {}
     for label, (column, scale) in (metrics or {**SUMMARY_METRICS, **FLOW_METRICS}).items():
         if not any(column in r for r in rows):
@@ -133,8 +134,7 @@ def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95,
         values = column_of(rows, column)
         ci = rate_ci(values, confidence) if label in RATE_METRICS else mean_ci(values, confidence)
         low, high = ci.low * scale, ci.high * scale
-        if label in FLOW_METRICS:  # quantities that cannot be negative, shares that cannot pass 100%
-            low, high = max(low, 0.0), min(high, 100.0) if "[%]" in label else high
+        low, high = max(low, 0.0), min(high, 100.0) if "[%]" in label else high
         out[label] = Interval(ci.mean * scale, low, high, ci.n).as_dict()
     return out
 

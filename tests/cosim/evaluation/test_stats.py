@@ -70,3 +70,14 @@ def test_rates_of_none_or_all_episodes_keep_a_width() -> None:
     assert s["merge success [%]"]["ci_high"] == 100.0
     assert s["merge success [%]"]["ci_low"] == pytest.approx(100 - 16.11, abs=0.01)
     assert (s["mean distance [m]"]["ci_low"], s["mean distance [m]"]["ci_high"]) == (100.0, 100.0)  # t-interval
+
+
+def test_t_intervals_stop_at_what_the_quantity_can_take() -> None:
+    # One hard-braking event in 5 episodes: the t-interval 0.2 +- 0.56 would reach below zero events.
+    s = summarize([{"hard_brakes": v} for v in (0, 0, 0, 1, 0)])
+    got = s["hard braking [events per episode]"]
+    assert got["mean"] == pytest.approx(0.2) and got["ci_low"] == 0.0
+    assert got["ci_high"] == pytest.approx(0.2 + 2.7764 * math.sqrt(0.2) / math.sqrt(5), abs=1e-3)
+    # A share over a demand run's seeds stops at 100%.
+    share = summarize([{"merge_rate_pct": v} for v in (100.0, 100.0, 90.0)])["merge success, per merging vehicle [%]"]
+    assert share["ci_high"] == 100.0 and 0.0 < share["ci_low"] < share["mean"]
