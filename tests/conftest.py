@@ -12,7 +12,7 @@ import pytest
 
 from agents.fake_env import CueEnv, make_fake_env
 from cosim.workers import StepResult
-from sumo_net.build import build_merge_net
+from sumo_net.build import build_merge_net, run_netconvert
 from sumo_net.shapes import SHAPES, build_shape
 
 
@@ -33,6 +33,18 @@ def two_lane_net(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 2-lane merge net (80 m acceleration lane) built once per session; returns its .net.xml path."""
     out = tmp_path_factory.mktemp("two_lane_net")
     return build_merge_net(out, lanes=2, accel_length=80, upstream_length=100, downstream_length=500)
+
+
+@pytest.fixture(scope="session")
+def rampless_net(tmp_path_factory: pytest.TempPathFactory, two_lane_net: Path) -> Path:
+    """`two_lane_net` rebuilt without its ramp and the ramp's connection, no description beside it: a net that
+    holds no on-ramp merge; returns its merge.net.xml path."""
+    out = tmp_path_factory.mktemp("rampless_net")
+    drop = {"merge.nod.xml": None, "merge.edg.xml": 'id="ramp"', "merge.con.xml": 'from="ramp"'}
+    for name, marker in drop.items():
+        lines = two_lane_net.with_name(name).read_text().splitlines()
+        (out / name).write_text("\n".join(line for line in lines if marker is None or marker not in line))
+    return run_netconvert(out, "merge")
 
 
 MASKED = (3,)  # the actions the pool's envs in `delivers_exactly` mask

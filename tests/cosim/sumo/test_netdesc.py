@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import re
-import shutil
 from pathlib import Path
 
 import pytest
@@ -12,7 +11,7 @@ from cosim.errors import NetError
 from cosim.sumo.net import Net
 from cosim.sumo.netdesc import NetDescription, infer_net_description, load_net_description
 from cosim.sumo.roadnet import RoadNet, load_roadnet
-from sumo_net.build import build_merge_net, run_netconvert
+from sumo_net.build import build_merge_net
 
 pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
@@ -105,15 +104,8 @@ def test_bad_descriptions_name_file_and_key(net: RoadNet, tmp_path: Path, text: 
         load_net_description(net, path)
 
 
-def test_inference_failure_explains_the_yaml(tmp_path: Path, two_lane_net: Path) -> None:
-    # A net without a ramp: the 2-lane build with the ramp's connection removed and rebuilt.
-    for name in ("merge.nod.xml", "merge.edg.xml", "merge.con.xml"):
-        shutil.copy(two_lane_net.with_name(name), tmp_path / name)
-    edg = tmp_path / "merge.edg.xml"
-    edg.write_text("\n".join(line for line in edg.read_text().splitlines() if 'id="ramp"' not in line))
-    con = tmp_path / "merge.con.xml"
-    con.write_text("\n".join(line for line in con.read_text().splitlines() if 'from="ramp"' not in line))
-    net = load_roadnet(run_netconvert(tmp_path, "merge"))
+def test_inference_failure_explains_the_yaml(rampless_net: Path) -> None:
+    net = load_roadnet(rampless_net)
     msg = r"cannot infer the on-ramp merge: .*found none.* beside the net \(merge\.yaml\).*accel_lanes: \[0\]\}$"
     with pytest.raises(NetError, match=msg):
         infer_net_description(net)
