@@ -1,5 +1,9 @@
 """The toolkit's exceptions: every user-facing failure is one of these, with a message naming the file or key."""
 
+import logging
+import sys
+from collections.abc import Callable
+
 
 class CosimError(Exception):
     """Base class: the CLI prints these as one line instead of a traceback."""
@@ -31,3 +35,13 @@ def check_at_least(name: str, value: float | None, least: float) -> None:
     """`ConfigError` naming `name` (a key or a flag) unless `value` is None or >= `least`."""
     if value is not None and value < least:
         raise ConfigError(f"{name}: must be >= {least}, got {value}")
+
+
+def run_script(main: Callable[[], object], log: logging.Logger) -> None:
+    """Run a script's `main`: bad input (a CosimError) is one logged line and exit status 2, as from the cosim
+    command, not a traceback."""
+    try:
+        main()
+    except CosimError as exc:
+        log.error("%s", exc)
+        sys.exit(2)

@@ -24,6 +24,7 @@ import torch
 from agents.checkpoint import TrainedPolicy, find_checkpoint, save_checkpoint
 from agents.model import ActorCritic
 from cosim.config import load_config
+from cosim.errors import run_script
 from cosim.evaluation.runner import evaluate
 from cosim.files import read_csv
 
@@ -80,4 +81,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, log)

@@ -23,7 +23,6 @@ import argparse
 import json
 import logging
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -31,7 +30,7 @@ import numpy as np
 
 from cosim.cli import add_config_arguments, config_overrides
 from cosim.config import EVAL_SEED_START, load_config
-from cosim.errors import CosimError
+from cosim.errors import run_script
 from cosim.evaluation.checknet import POLICIES, targets_met
 from cosim.evaluation.runner import Baseline, evaluate
 from cosim.evaluation.stats import format_table, mean_ci
@@ -127,8 +126,4 @@ def _cell(ci: dict) -> str:
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except CosimError as exc:  # bad input: one line, as from the cosim command
-        log.error("%s", exc)
-        sys.exit(2)
+    run_script(main, log)

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from cosim.cli import add_config_arguments, config_overrides
 from cosim.config import EVAL_SEED_START, load_config
+from cosim.errors import run_script
 from cosim.evaluation.checknet import POLICIES
 from cosim.evaluation.runner import Baseline, evaluate
 from cosim.evaluation.stats import FLOW_METRICS, format_table
@@ -70,4 +71,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, log)

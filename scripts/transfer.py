@@ -14,12 +14,11 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import sys
 import time
 from pathlib import Path
 
 from cosim.config import EVAL_SEED_START, load_config
-from cosim.errors import CosimError
+from cosim.errors import run_script
 from cosim.evaluation.checknet import POLICIES
 from cosim.evaluation.runner import Baseline, evaluate
 from cosim.files import atomic_write_text
@@ -85,8 +84,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    try:
-        main()
-    except CosimError as exc:  # bad input: one line, as from the cosim command
-        log.error("%s", exc)
-        sys.exit(2)
+    run_script(main, log)

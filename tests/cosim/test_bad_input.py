@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import shutil
 from pathlib import Path
 
@@ -9,7 +10,7 @@ import pytest
 
 import cosim
 from cosim.cli import main
-from cosim.errors import ConfigError, NetError, SimulationError
+from cosim.errors import ConfigError, NetError, SimulationError, run_script
 
 pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
@@ -71,3 +72,15 @@ def test_cli_prints_one_line_and_exits_2(capsys: pytest.CaptureFixture[str], cap
     assert main(["run-scenario", "--episodes", "1", "--set", "scenario.n_avs=-2"]) == 2
     assert "scenario.n_avs: must be > 0" in caplog.text
     assert "Traceback" not in capsys.readouterr().err
+
+
+def test_scripts_end_bad_input_in_one_line(caplog: pytest.LogCaptureFixture) -> None:
+    def bad() -> None:
+        raise NetError("--net x.net.xml: not found (expected a SUMO .net.xml)")
+
+    with pytest.raises(SystemExit) as stop:
+        run_script(bad, logging.getLogger("script"))
+    assert stop.value.code == 2
+    assert [r.getMessage() for r in caplog.records] == ["--net x.net.xml: not found (expected a SUMO .net.xml)"]
+    with pytest.raises(ZeroDivisionError):  # a defect is not bad input: its traceback stays
+        run_script(lambda: 1 / 0, logging.getLogger("script"))
