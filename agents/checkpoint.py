@@ -10,10 +10,12 @@ Contract:
 - `read_checkpoint(path, expect=...)` returns the payload, or raises `CheckpointError` (a
   `cosim.errors.CosimError`) naming the file when it is missing, unreadable, not ours, or incompatible
   with the expected obs shape / dtype / number of agents / policy layout.
-- `load_policy(path)` (a run folder, its `policy.pt` or a checkpoint) returns `(policies, meta)`: `policies`
-  maps each agent name to its trained `ActorCritic` (eval mode; the same object for every agent when the
+- `save_policy(path, payload, **extra)` writes the policy file of a payload alone (`best.pt`: the policy that did
+  best in validation, with its figures as `validation`).
+- `load_policy(path)` (a run folder, its `policy.pt` or `best.pt`, or a checkpoint) returns `(policies, meta)`:
+  `policies` maps each agent name to its trained `ActorCritic` (eval mode; the same object for every agent when the
   policy is shared), whose `act(obs (B, F, C, H, W), greedy)` gives actions; `meta` holds the checkpoint's
-  spec, counters and config.
+  spec, counters, config and, for `best.pt`, its validation figures.
   `act_agents(policies, obs, greedy, masks)` acts for named agents, one forward per network (agents sharing a
   network are batched), the way evaluation plays a checkpoint; with `masks` (agent -> the env's action mask)
   among the allowed actions only. `TrainedPolicy` masks with the env's `action_masks()` (what its infos carry)
@@ -45,6 +47,7 @@ FORMAT, VERSION = "cosim-ma-a2c", 2
 POLICY_FORMAT = "cosim-policy"
 CHECKPOINT_NAME = "checkpoint.pt"  # everything a resume needs
 POLICY_NAME = "policy.pt"  # the trained networks alone, for evaluation and sharing
+BEST_NAME = "best.pt"  # a policy file: the networks that did best in validation (agents.validation)
 
 
 class CheckpointError(CosimError):
@@ -55,8 +58,7 @@ def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
     """The resumable checkpoint at `path` and the policy-only file beside it (`POLICY_NAME`), both written in
     full before either replaces its old one, so that they stay a pair; `CheckpointError` naming the file when a
     write fails (a full disk), the previous pair left as it was."""
-    small = {"format": POLICY_FORMAT, "version": VERSION, "nets": payload["policy"]["nets"],
-             **{k: payload[k] for k in ("spec", "counters", "train", "config", "phis") if k in payload}}
+    small = policy_payload(payload)
     try:
         with atomic_path(path) as tmp, atomic_path(path.with_name(POLICY_NAME)) as small_tmp:
             _save({"format": FORMAT, "version": VERSION, **payload}, tmp)
@@ -66,6 +68,23 @@ def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
                 else "no checkpoint was written")
         raise CheckpointError(f"checkpoint {exc.filename or path}: cannot write it ({exc.strerror or exc}); "
                               f"{kept}") from None
+
+
+def policy_payload(payload: dict[str, Any], **extra: Any) -> dict[str, Any]:
+    """The policy file's content (module doc) of a checkpoint payload, with `extra` entries."""
+    return {"format": POLICY_FORMAT, "version": VERSION, "nets": payload["policy"]["nets"],
+            **{k: payload[k] for k in ("spec", "counters", "train", "config", "phis") if k in payload}, **extra}
+
+
+def save_policy(path: Path, payload: dict[str, Any], **extra: Any) -> None:
+    """The policy file of a checkpoint payload alone (`best.pt`), written atomically; `CheckpointError` naming the
+    file when the write fails, the previous file left as it was."""
+    try:
+        with atomic_path(path) as tmp:
+            _save(policy_payload(payload, **extra), tmp)
+    except OSError as exc:
+        raise CheckpointError(f"policy file {exc.filename or path}: cannot write it ({exc.strerror or exc}); the "
+                              f"previous one is unchanged") from None
 
 
 def _save(obj: Any, path: Path) -> None:
@@ -162,7 +181,7 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[dict[str, ActorC
         path = path / POLICY_NAME if (path / POLICY_NAME).is_file() else path / CHECKPOINT_NAME
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path}: not found")
-    if path.name == POLICY_NAME:
+    if path.name in (POLICY_NAME, BEST_NAME):
         payload = _read_policy_file(path)
         state = payload["nets"]
     else:
@@ -182,7 +201,8 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[dict[str, ActorC
         raise CheckpointError(f"checkpoint {path}: {len(nets)} networks for {len(agents)} agents")
     policies = {a: nets[0 if spec["shared_policy"] else i] for i, a in enumerate(agents)}
     meta = {"path": str(path), "spec": spec, "counters": payload["counters"],
-            "train": payload.get("train", {}), "config": payload.get("config", {}), "phis": payload.get("phis")}
+            "train": payload.get("train", {}), "config": payload.get("config", {}), "phis": payload.get("phis"),
+            "validation": payload.get("validation")}
     return policies, meta
 
 
@@ -265,14 +285,27 @@ def episode_actors(nets: Mapping[str, Any], spec: Mapping[str, Any], env: Parall
     return for_episode
 
 
-def find_checkpoint(run: Path | None, checkpoint: Path | None) -> Path:
-    """The file to evaluate: `checkpoint`, else the run's small policy file where it has one (the networks
-    alone), else its resumable checkpoint; `CosimError` when there is none."""
+def describe_checkpoint(path: Path) -> str:
+    """Which state of a run `path` holds, in words: its episodes, and for a best.pt the validation that chose it."""
+    meta = load_policy(path)[1]
+    counters, row = meta["counters"], meta["validation"]
+    what = f"{path}, trained {int(counters['episodes']):,} episodes ({int(counters['updates']):,} updates)"
+    if row is None:
+        return what
+    return (f"{what}, the best validation of its run ({int(row['episodes_validated'])} greedy episodes on the "
+            f"validation seeds: crash {row['crash']:.1f}% [{row['crash_low']:.1f}, {row['crash_high']:.1f}], merge "
+            f"{row['merge']:.1f}% [{row['merge_low']:.1f}, {row['merge_high']:.1f}])")
+
+
+def find_checkpoint(run: Path | None, checkpoint: Path | None, last: bool = False) -> Path:
+    """The file to evaluate: `checkpoint`, else the run's best policy by validation (`best.pt`) where it kept one
+    and `last` is not asked for, else its last policy file (the networks alone), else its resumable checkpoint;
+    `CosimError` when there is none."""
     if run is None and checkpoint is None:
         raise CosimError("cosim evaluate: give --run RUN (or --checkpoint FILE) for a trained policy, "
                          "or --policy BASELINE")
-    path = checkpoint or next((run / n for n in (POLICY_NAME, CHECKPOINT_NAME) if (run / n).is_file()),
-                              run / CHECKPOINT_NAME)
+    names = (POLICY_NAME, CHECKPOINT_NAME) if last else (BEST_NAME, POLICY_NAME, CHECKPOINT_NAME)
+    path = checkpoint or next((run / n for n in names if (run / n).is_file()), run / CHECKPOINT_NAME)
     if not path.is_file():
         raise CosimError(f"checkpoint {path}: not found; train the run first (cosim train), pass "
                          f"--checkpoint FILE, or evaluate a baseline with --policy")

@@ -1,11 +1,12 @@
 """Training logs: CSV files and TensorBoard scalars for updates and episodes, recent rates, headless log lines.
 
-Contract: `RunLogger(out_dir, updates_done, episodes_done)` appends to `out_dir/updates.csv` and
-`out_dir/episodes.csv` and writes TensorBoard event files under `out_dir/tb`, all against the update
-counter. A resumed run first cuts both CSV files back to the checkpoint it resumes from (`cut_logs`: rows after
-`updates_done` / `episodes_done`, written by a run that died between checkpoints, would otherwise appear
-twice) and purges TensorBoard events after it. `update(row)` and `episode(row)` take flat dicts of numbers;
-`recent` keeps the last 100 episodes for the progress bar's and the log line's crash / merge rates.
+Contract: `RunLogger(out_dir, updates_done, episodes_done)` appends to `out_dir/updates.csv`,
+`out_dir/episodes.csv` and `out_dir/validation.csv` (`validation(row)`) and writes TensorBoard event files under
+`out_dir/tb`, all against the update counter. A resumed run first cuts the CSV files back to the checkpoint it
+resumes from (`cut_logs`: rows after `updates_done` / `episodes_done`, written by a run that died between
+checkpoints, would otherwise appear twice) and purges TensorBoard events after it. `update(row)` and
+`episode(row)` take flat dicts of numbers; `recent` keeps the last 100 episodes for the progress bar's and the log
+line's crash / merge rates.
 `log_gaps(out_dir, updates_done, episodes_done, log_every)` checks the two files against a checkpoint's
 counters before a resume: one line per file that lacks rows (deleted or cut), naming both counts; a
 `CosimError` naming the file and row where two processes wrote into it (an episode twice, a repeated header).
@@ -22,6 +23,8 @@ from torch.utils.tensorboard import SummaryWriter
 from cosim.errors import CosimError
 from cosim.files import AppendCsv, read_csv, write_csv
 
+VALIDATION_LOG = "validation.csv"  # one row per validation (agents.validation)
+
 
 def cut_csv(path: Path, key: str, last: int) -> None:
     """Drop the rows of `path` whose `key` is above `last` (and half-written ones), atomically."""
@@ -34,6 +37,7 @@ def cut_logs(out_dir: Path, updates_done: int, episodes_done: int) -> None:
     """Both CSV logs back to a checkpoint's counters."""
     cut_csv(out_dir / "updates.csv", "update", updates_done)
     cut_csv(out_dir / "episodes.csv", "episode", episodes_done)
+    cut_csv(out_dir / VALIDATION_LOG, "update", updates_done)
 
 
 def log_gaps(out_dir: Path, updates_done: int, episodes_done: int, log_every: int) -> list[str]:
@@ -69,6 +73,7 @@ class RunLogger:
         cut_logs(out_dir, updates_done, episodes_done)
         self.updates = AppendCsv(out_dir / "updates.csv")
         self.episodes = AppendCsv(out_dir / "episodes.csv")
+        self.validations = AppendCsv(out_dir / VALIDATION_LOG)
         self.tb = SummaryWriter(str(out_dir / "tb"), purge_step=updates_done + 1)
         self.recent: deque[dict[str, Any]] = deque(maxlen=window)
 
@@ -77,6 +82,13 @@ class RunLogger:
         for key, value in row.items():
             if key not in ("update", "episodes", "samples"):
                 self.tb.add_scalar(f"train/{key}", value, row["update"])
+
+    def validation(self, row: dict[str, Any]) -> None:
+        """One validation's row (`agents.validation.summarize` and the counters), against the update counter."""
+        self.validations.write(row)
+        for key, value in row.items():
+            if key not in ("update", "best"):
+                self.tb.add_scalar(f"validation/{key}", value, row["update"])
 
     def episode(self, row: dict[str, Any]) -> None:
         self.recent.append(row)

@@ -139,18 +139,22 @@ class MultiAgentPolicy:
         return out
 
     @torch.no_grad()
-    def act(self, obs: torch.Tensor, agents: torch.Tensor, update: int, masks: torch.Tensor | None = None
-            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def act(self, obs: torch.Tensor, agents: torch.Tensor, update: int, masks: torch.Tensor | None = None,
+            greedy: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Sampled actions, their log-probabilities and values (M,) for observations (M, F, C, H, W) of the AVs
         `agents` (M,) under their action masks (M, A; None: every action allowed), one forward per network in
-        play."""
+        play; `greedy`: the most probable actions instead, in float32 as evaluation plays them (validation)."""
         m = len(agents)
         actions, logp, values = torch.zeros(m, dtype=torch.int64), torch.zeros(m), torch.zeros(m)
         for net, sel in self._groups(agents, update):
-            logits, v = net(obs[sel].to(self.device))
+            bf16, net.bf16 = net.bf16, net.bf16 and not greedy
+            try:
+                logits, v = net(obs[sel].to(self.device))
+            finally:
+                net.bf16 = bf16
             dist = torch.distributions.Categorical(
                 logits=logits if masks is None else masked_logits(logits, self._mask(masks[sel])))
-            a = dist.sample()
+            a = dist.probs.argmax(-1) if greedy else dist.sample()
             actions[sel], logp[sel], values[sel] = a.cpu(), dist.log_prob(a).cpu(), v.cpu()
         return actions, logp, values
 

@@ -133,9 +133,9 @@ class _EnvActor:
             return self.error or SimulationError("no env"), os.getpid()
         return self.runner.spec, os.getpid()
 
-    def reset(self, seed: int | None) -> tuple[StepResult, np.ndarray, None]:
+    def reset(self, arg: tuple[int | None, bool]) -> tuple[StepResult, np.ndarray, None]:
         assert self.runner is not None and self.runner.obs is not None
-        return self.runner.reset(seed), self.runner.obs, None
+        return self.runner.reset(*arg), self.runner.obs, None
 
     def step(self, actions: np.ndarray) -> tuple[StepResult, np.ndarray, np.ndarray | None]:
         assert self.runner is not None and self.runner.obs is not None

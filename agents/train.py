@@ -43,6 +43,7 @@ import yaml
 from tqdm import tqdm
 
 from agents.checkpoint import (
+    BEST_NAME,
     CHECKPOINT_NAME,
     POLICY_NAME,
     CheckpointError,
@@ -50,6 +51,7 @@ from agents.checkpoint import (
     read_checkpoint,
     rng_state,
     save_checkpoint,
+    save_policy,
     set_rng_state,
 )
 from agents.collect import Collected, collect
@@ -57,6 +59,7 @@ from agents.config import TrainConfig, check_device, train_config
 from agents.logs import RunLogger, cut_logs, log_gaps
 from agents.multiagent import Batch, MultiAgentPolicy
 from agents.rollout import Backend
+from agents.validation import better, summarize, validate, validation_seeds
 from cosim.config import EVAL_SEED_START, Config, SafetyConfig, read_yaml
 from cosim.errors import ConfigError, EpisodeError, NetError
 from cosim.files import FolderLock, FolderState, atomic_write_text, stale_temporaries
@@ -66,7 +69,8 @@ from cosim.workers import EnvFactory
 
 log = logging.getLogger(__name__)
 
-COUNTERS = ("episodes", "updates", "samples", "restarts", "lost_episodes")
+# validated: the episodes trained when the last validation ran (train.eval_every)
+COUNTERS = ("episodes", "updates", "samples", "restarts", "lost_episodes", "validated")
 NET_RECORD = "net.json"  # the net a run trains on (path, sha256, summary) and the scenario resolved on it
 
 
@@ -96,6 +100,7 @@ def episode_seed(seed: int, update: int, worker: int) -> int:
 # Keys a resume may change without --allow-config-change: how long and how a run is run, not what it learns; the
 # safety measures only count what happens (a run from before the section existed resumes without it).
 RESUMABLE = frozenset({"train.episodes", "train.budget_min", "train.checkpoint_every", "train.log_every",
+                       "train.eval_every", "train.eval_episodes",
                        "train.log_every_s", "train.step_timeout", "train.max_restarts", "train.torch_threads",
                        "train.device", *(f"safety.{key}" for key in SafetyConfig.model_fields)})
 # What a run from before a key existed did, for the resume's comparison: it trained without action masks.
@@ -178,6 +183,9 @@ def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: i
                 run.log(got, stats)
                 run.end_update()
                 run.maybe_checkpoint()
+                run.maybe_validate()
+            if not stop.requested:
+                run.maybe_validate(final=True)  # best.pt weighs the final policy too
         run.interrupted = stop.requested
     except KeyboardInterrupt:  # a second Ctrl-C, or one outside the loop
         run.interrupted = True
@@ -281,9 +289,11 @@ class _Run:
         self.ckpt_path = out_dir / CHECKPOINT_NAME
         self.counters = {k: 0 for k in COUNTERS}
         self.train_s = 0.0  # over the whole run
+        self.best: dict[str, float] | None = None  # the validation row of best.pt
         if payload is not None:
             self.counters.update({k: int(v) for k, v in payload["counters"].items() if k in COUNTERS})
             self.train_s = float(payload["counters"].get("train_s", 0.0))
+            self.best = payload.get("best")
         if tc.torch_threads:
             torch.set_num_threads(tc.torch_threads)
         random.seed(tc.seed)
@@ -311,7 +321,8 @@ class _Run:
                                         getattr(torch, spec.obs_dtype), spec.n_actions)
             # Every check passed: from here on the run folder changes.
             self.lock.acquire()
-            for stale in stale_temporaries(out_dir, CHECKPOINT_NAME) + stale_temporaries(out_dir, POLICY_NAME):
+            for stale in [p for name in (CHECKPOINT_NAME, POLICY_NAME, BEST_NAME)
+                          for p in stale_temporaries(out_dir, name)]:
                 log.info("removing %s, left by a checkpoint write that was killed", stale)
                 stale.unlink()
             if changes:
@@ -415,12 +426,40 @@ class _Run:
         if self.counters["updates"] % self.tc.checkpoint_every == 0:
             self.checkpoint()
 
+    def maybe_validate(self, final: bool = False) -> None:
+        """Validate (agents.validation) when another `train.eval_every` episodes have passed since the last time,
+        or, `final`, when the run's last episodes were not validated yet; keep best.pt, then checkpoint, so that
+        the checkpoint knows the best so far."""
+        c, every = self.counters, self.tc.eval_every
+        if not every or not (c["episodes"] // every > c["validated"] // every
+                             or (final and c["episodes"] > c["validated"])):
+            return
+        t0 = time.perf_counter()
+        fig = summarize(validate(self.pool, self.policy, validation_seeds(self.tc.eval_episodes), c["updates"]))
+        spent = time.perf_counter() - t0
+        self.train_s += spent  # the budget is wall-clock time, validation's included
+        c["validated"] = c["episodes"]
+        best = better(fig, self.best)
+        row = {"update": c["updates"], "episodes": c["episodes"], "samples": c["samples"], "train_s": self.train_s,
+               "validation_s": spent, **fig, "best": int(best)}
+        self.logger.validation(row)
+        if best:
+            self.best = row
+            save_policy(self.out_dir / BEST_NAME, self.payload(), validation=row)
+        log.info("validation at episode %d (%d greedy episodes, %.0f s): crash %.1f%% [%.1f, %.1f], merge %.1f%% "
+                 "[%.1f, %.1f], conflicts %.2f per episode, return %.1f%s", c["episodes"], fig["episodes_validated"],
+                 spent, fig["crash"], fig["crash_low"], fig["crash_high"], fig["merge"], fig["merge_low"],
+                 fig["merge_high"], fig["conflicts"], fig["return"],
+                 f"; best so far, kept as {BEST_NAME}" if best else "")
+        self.checkpoint()
+
     def payload(self, copy_policy: bool = False) -> dict[str, Any]:
         """The checkpoint of the run as it is now."""
         policy = self.policy.state_dict()
         return {"spec": self.spec, "policy": copy.deepcopy(policy) if copy_policy else policy,
                 "counters": {**self.counters, "train_s": self.train_s}, "rng": rng_state(),
-                "train": self.tc.model_dump(), "config": self.cfg.to_dict(), "phis": list(self.cfg.phis())}
+                "train": self.tc.model_dump(), "config": self.cfg.to_dict(), "phis": list(self.cfg.phis()),
+                "best": self.best}
 
     def checkpoint(self, payload: dict[str, Any] | None = None) -> None:
         payload = payload or self.payload()

@@ -269,7 +269,9 @@ def _policy_arguments(parser: argparse.ArgumentParser, policy_help: str) -> None
 
     add_config_arguments(parser, default=None)
     parser.add_argument("--run", type=Path, help="training run folder (its config.yaml and checkpoint.pt)")
-    parser.add_argument("--checkpoint", type=Path, help="checkpoint file (default: RUN/checkpoint.pt)")
+    parser.add_argument("--checkpoint", type=Path, help="checkpoint or policy file (default: RUN/best.pt, the best "
+                        "policy by validation during training, where the run kept one, else RUN/policy.pt)")
+    parser.add_argument("--last", action="store_true", help="the run's last policy (RUN/policy.pt), not its best")
     parser.add_argument("--policy", choices=["checkpoint", "sb3", *BASELINES], default="checkpoint", help=policy_help)
 
 
@@ -331,9 +333,11 @@ def _trained_policy(args: argparse.Namespace, greedy: bool) -> Any:
         except ImportError as exc:
             raise ConfigError(f"--policy sb3: {exc.name} is missing; pip install -e \".[sb3]\" installs it") from None
         return Sb3Policy(str(args.checkpoint.resolve()), greedy)
-    from agents.checkpoint import TrainedPolicy, find_checkpoint
+    from agents.checkpoint import TrainedPolicy, describe_checkpoint, find_checkpoint
 
-    return TrainedPolicy(str(find_checkpoint(args.run, args.checkpoint)), greedy)
+    path = find_checkpoint(args.run, args.checkpoint, last=args.last)
+    log.info("policy: %s", describe_checkpoint(path))
+    return TrainedPolicy(str(path), greedy)
 
 
 # -- check-net -----------------------------------------------------------------------------------------

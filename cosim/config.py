@@ -58,6 +58,9 @@ OBSERVATION_PRESETS: dict[str, dict[str, Any]] = {
 }
 # Episode seeds from here on are evaluation's; training draws its seeds below, so the two never meet.
 EVAL_SEED_START = 10_000_000
+# Validation during training (`train.eval_every`) plays seeds from here: far above evaluation's, so that choosing a
+# run's best checkpoint never looks at the episodes it is then tested on.
+VALIDATION_SEED_START = 2_000_000_000
 # The largest episode seed: SUMO's --seed is a 32-bit signed integer (and numpy's SeedSequence, which the
 # scenario draws from, takes no negative one), so seeds are 0 .. SEED_MAX.
 SEED_MAX = 2**31 - 1
@@ -81,6 +84,7 @@ Preset = Literal[tuple(OBSERVATION_PRESETS)]  # type: ignore[valid-type]
 Algo = Literal["a2c", "ppo"]
 OptimizerName = Literal["adam", "rmsprop"]
 Precision = Literal["auto", "float32", "bfloat16"]
+Shield = Literal["none", "sumo"]
 CHANNELS: tuple[str, ...] = get_args(Channel)
 AV_DRIVERS: tuple[str, ...] = get_args(AvDriver)  # who drives the AVs: the agents through the env, or SUMO
 PLACEMENTS: tuple[str, ...] = get_args(Placement)  # keys of cosim.sumo.scenario.PLACEMENTS
@@ -88,6 +92,7 @@ ON_COLLISION: tuple[str, ...] = get_args(OnCollision)
 ALGOS: tuple[str, ...] = get_args(Algo)
 OPTIMIZER_NAMES: tuple[str, ...] = get_args(OptimizerName)  # keys of agents.losses.OPTIMIZERS
 PRECISIONS: tuple[str, ...] = get_args(Precision)
+SHIELDS: tuple[str, ...] = get_args(Shield)  # keys of cosim.sumo.session.AV_MODES
 
 
 def _problem(message: str, key: str = "") -> PydanticCustomError:
@@ -489,6 +494,12 @@ class AVConfig(_Section):
     speed_step: Number | None = Field(None, gt=0, description="... in m/s [m/s]")
     length: Number = Field(5.0, description="[m]")
     width: Number = Field(1.8, description="[m]")
+    # The paper's setting is none: AVs may crash, and learning to avoid that is part of the task.
+    shield: Shield = Field(
+        "none", description="a safety layer under the policy: none, the AVs do what it says and may crash; sumo, "
+        "SUMO's own safety checks bound them (cosim.sumo.session.AV_MODES): their speed never above the "
+        "car-following model's safe speed, and a lane change only where it keeps the others' safe gaps (else the AV "
+        "stays in its lane)")
 
     twins: ClassVar[tuple[Twins, ...]] = AV_TWINS
 
@@ -655,6 +666,13 @@ class TrainConfig(_Section):
         10, gt=0, description="K: updates a learner AV trains before its weights are disseminated (per AV)")
     checkpoint_every: Int = Field(
         50, gt=0, description="updates between two checkpoints (one is also written at the end)")
+    eval_every: Int = Field(
+        0, ge=0, description="episodes between two validations: greedy episodes on the validation seeds "
+        "(VALIDATION_SEED_START on, disjoint from training's and evaluation's), logged to validation.csv, the best "
+        "kept as best.pt (agents.validation); 0: none")
+    eval_episodes: Int = Field(
+        200, gt=0, le=SEED_MAX - VALIDATION_SEED_START + 1,
+        description="episodes of one validation (the same seeds each time)")
     log_every: Int = Field(1, gt=0, description="updates between two rows of the update log")
     log_every_s: Number = Field(
         30.0, ge=0, description="between two log lines when there is no terminal (no progress bar) [s]")

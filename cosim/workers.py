@@ -9,7 +9,7 @@ Contract:
   after a reset or step (zeros for the others), and `final[w]`, where it writes the final observation of each
   agent truncated in that step. Only small results cross the pipes; nothing is pickled per observation.
 - Commands go to a subset of workers and their results are collected later, so that the learner can act
-  for some workers while the others step: `send_reset(ws, seeds)`, `send_step(ws, actions)` (actions
+  for some workers while the others step: `send_reset(ws, seeds, outputs=False)`, `send_step(ws, actions)` (actions
   (len(ws), N); agent i is `possible_agents[i]`), then `recv(ws)` -> one `StepResult` per worker, with each live
   agent's action mask from its infos (`infos[a]["action_mask"]`; all ones where the env gives none). A worker's
   shared slots stay valid until its next command. Episodes do not reset by themselves: the step that ends one
@@ -219,6 +219,7 @@ class _EnvRunner:
         self.obs: np.ndarray | None = None  # (N, F, C, H, W) this worker's slot of the shared arrays
         self.final: np.ndarray | None = None
         self.length = 0
+        self.outputs = False  # the running episode writes SUMO's outputs, added to its summary at its end
 
     def _write(self, obs: dict[str, np.ndarray], alive: Sequence[str]) -> np.ndarray:
         assert self.obs is not None
@@ -236,8 +237,10 @@ class _EnvRunner:
             out[i] = infos.get(self.agents[i], {}).get("action_mask", 1)
         return out
 
-    def reset(self, seed: int | None) -> StepResult:
-        obs, infos = self.env.reset(seed=seed)
+    def reset(self, seed: int | None, outputs: bool = False) -> StepResult:
+        # Only where asked: an env of another library need not know the option.
+        obs, infos = self.env.reset(seed=seed, options={"outputs": True}) if outputs else self.env.reset(seed=seed)
+        self.outputs = outputs
         self.length = 0
         n = len(self.agents)
         alive = self._write(obs, [a for a in self.env.agents if a in obs])
@@ -270,6 +273,9 @@ class _EnvRunner:
             episode = None  # only reported when the episode is over
         elif episode is None:
             episode = {"length": self.length}
+        if episode is not None and self.outputs:
+            self.env.flush_outputs()
+            episode = {**episode, **self.env.sumo_outputs.pop(self.env.episode_seed).as_row()}
         return StepResult(alive, reward, terminated, truncated, self._masks(infos, alive), terms, episode)
 
 
@@ -301,7 +307,7 @@ def _worker_main(conn: Connection, env_factory: EnvFactory, tmp_root: str) -> No
                     _CALLER = None
                 conn.send(("ok", result))
             else:
-                conn.send(("ok", runner.reset(arg) if cmd == "reset" else runner.step(arg)))
+                conn.send(("ok", runner.reset(*arg) if cmd == "reset" else runner.step(arg)))
     except EOFError:  # the learner went away
         pass
     except (ConfigError, NetError) as exc:  # bad input fails the same way in every restart: stop the run
@@ -403,8 +409,10 @@ class PoolCommands:
     def _send(self, ws: Sequence[int], cmd: str, args: Sequence[Any]) -> None:
         raise NotImplementedError
 
-    def send_reset(self, ws: Sequence[int], seeds: Sequence[int | None]) -> None:
-        self._send(ws, "reset", seeds)
+    def send_reset(self, ws: Sequence[int], seeds: Sequence[int | None], outputs: bool = False) -> None:
+        """`outputs`: the episodes write SUMO's outputs (`MergeEnv.reset`'s option), and the step that ends each
+        carries them (`SumoOutputs.as_row`: conflicts, throughput, ...) in its `episode` summary."""
+        self._send(ws, "reset", [(seed, outputs) for seed in seeds])
 
     def send_step(self, ws: Sequence[int], actions: np.ndarray) -> None:
         self._send(ws, "step", list(np.asarray(actions, dtype=np.int64)))

@@ -40,12 +40,18 @@ def test_readme_main_job_trains_then_evaluates_the_trained_run(tmp_path: Path,
     trained = read_csv(run / "episodes.csv")
     assert len(trained) == 16  # train.episodes of the smoke config, no more
     assert all(int(r["seed"]) < EVAL_SEED_START for r in trained)
-    updates = read_checkpoint(run / "checkpoint.pt")["counters"]["updates"]
+    assert read_checkpoint(run / "checkpoint.pt")["counters"]["updates"] == 8
     assert (run / "policy.pt").is_file() and (run / "config.yaml").is_file()
+    validations = read_csv(run / "validation.csv")  # the smoke config validates every 8 episodes
+    assert [int(r["episodes"]) for r in validations] == [8, 16]
+    best = [r for r in validations if r["best"] == "1"][-1]
 
     assert main(eval_args) == 0
     summary = json.loads((run / "eval" / "summary.json").read_text())
-    assert summary["policy"] == "checkpoint" and summary["trained_updates"] == updates  # the trained state
+    # The run's best policy by validation is the one evaluated, and the report says so.
+    assert summary["policy"] == "checkpoint" and summary["checkpoint"] == str((run / "best.pt").resolve())
+    assert summary["trained_updates"] == int(best["update"])
+    assert str((run / "best.pt").resolve()) in (run / "eval" / "report.md").read_text()
     evaluated = read_csv(run / "eval" / "episodes.csv")
     assert [int(r["seed"]) for r in evaluated] == [EVAL_SEED_START + i for i in range(3)]
     crashed = [r["crashed"] == "True" for r in evaluated]

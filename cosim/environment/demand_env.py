@@ -74,7 +74,7 @@ class DemandEnv(ParallelEnv):
         self.max_steps = max(1, round(self.demand.horizon / config.sim.decision_period))
         self.session = SumoSession(Path(config.net.file), config.sim.step_length, self.road.index_of, kind_of,
                                    config.sim.sumo_args, config.sim.collision_mingap_factor,
-                                   drive_avs=config.sim.av_driver == "env", gui=gui)
+                                   drive_avs=config.sim.av_driver == "env", gui=gui, shield=config.av.shield)
         self._phi = float(config.reward.phi)
         self._next_seed = config.sim.seed
         self._tmp: Path | None = None

@@ -26,7 +26,8 @@ numpy integers are fine) is an `ActionError` (a `CosimError` and a `ValueError`)
 actions; actions of agents already done are ignored. A closed env stays closed: `reset` and `step` after `close`
 raise a RuntimeError that says so.
 
-With `sim.outputs` each episode writes SUMO's tripinfo and induction-loop files into its own folder
+With `sim.outputs`, or for one episode with `reset(options={"outputs": True})` (training's validation episodes),
+each episode writes SUMO's tripinfo and induction-loop files into its own folder
 (`cosim.sumo.outputs.episode_folder`), over a window that is the same for every episode: `flush_outputs()` runs
 an episode that ended early on to the horizon (wrecks stay where they crashed, the AVs drive as SUMO's
 humans), completes the files and parses them into `env.sumo_outputs[seed]` (`cosim.sumo.outputs.SumoOutputs`);
@@ -137,7 +138,7 @@ class MergeEnv(ParallelEnv):
         self._tmp: Path | None = None  # this env's temporary folder, made at the first reset, removed at close
         self.session = SumoSession(Path(config.net.file), config.sim.step_length, self.road.index_of, kind_of,
                                    config.sim.sumo_args, config.sim.collision_mingap_factor,
-                                   drive_avs=config.sim.av_driver == "env", gui=gui)
+                                   drive_avs=config.sim.av_driver == "env", gui=gui, shield=config.av.shield)
         self.detectors = detector_site(self.net, config.sim.detector_offset)
         self.sumo_outputs: dict[int, SumoOutputs] = {}  # episode seed -> its parsed SUMO outputs
         # [m] odometer of every vehicle at the end of the flow window (flush_outputs), to check SUMO's against
@@ -176,14 +177,15 @@ class MergeEnv(ParallelEnv):
         write_episode(plan_episode(self.cfg, self.net, seed), self.cfg, self.net.desc, self.route_file)
         end_time = None if self._snap is None else self._snap.time
         extra: list[str] = []
-        if self.cfg.sim.outputs:
+        outputs = self.cfg.sim.outputs or bool((options or {}).get("outputs"))
+        if outputs:
             out_root = Path(self.cfg.sim.output_dir) if self.cfg.sim.output_dir else self._tmp / "outputs"
             folder = episode_folder(out_root, seed, busy=None if self._pending_outputs is None
                                     else self._pending_outputs[1])
             extra = episode_output_args(folder, self.detectors, safety=self.cfg.safety)
         self.session.load(self.route_file, seed, extra)
         self._collect_outputs(end_time)  # the reload completed the previous episode's files
-        if self.cfg.sim.outputs:
+        if outputs:
             self._pending_outputs = (seed, folder)
         self.agents = list(self.possible_agents)
         self.last_summary = None

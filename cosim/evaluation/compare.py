@@ -142,6 +142,10 @@ def _report(evals: Sequence[Evaluation], metrics: dict, episodes: dict[str, int]
     lines = ["# Evaluation report", "",
              "Runs: " + ", ".join(f"**{e.label}** ({e.summary.get('policy')}, `{e.eval_dir}`)" for e in evals),
              ""]
+    # Which state of a trained run was played: best.pt (chosen by validation) or the last policy.
+    played = [f"**{e.label}**: `{e.summary['checkpoint']}`" for e in evals if e.summary.get("checkpoint")]
+    if played:
+        lines += ["Trained policies played: " + ", ".join(played), ""]
     if mismatches:
         lines += ["> **Warning: these runs were not evaluated on the same episodes of the same scenario;** their "
                   "differences below mix the policies' effect with that of:", ">"]

@@ -189,4 +189,10 @@ def scenario_lines(cfg: Config, net: Net) -> list[str]:
         start = f"{rng(sc.merger_time, 's')} before the acceleration lane"
     return [where, f"the merging vehicle starts {start} at {rng(sc.merger_speed, 'm/s')}",
             f"AVs: top speed {cfg.av.max_speed:.1f} m/s, speed step {cfg.av.speed_step:.2f} m/s; observation speed "
-            f"scale {cfg.observation.speed_scale:.1f} m/s; HVs' top speed {cfg.hv.max_speed:.1f} m/s"]
+            f"scale {cfg.observation.speed_scale:.1f} m/s; HVs' top speed {cfg.hv.max_speed:.1f} m/s",
+            SHIELD_LINES[cfg.av.shield]]
+
+
+# What each `av.shield` means for the AVs the env drives, in the reports' words.
+SHIELD_LINES = {"none": "safety layer: none, the AVs do what the policy says and may crash (the paper's setting)",
+                "sumo": "safety layer: sumo, SUMO's safe speed and safe-gap lane-change checks bound the AVs' actions"}

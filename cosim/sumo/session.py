@@ -76,10 +76,19 @@ def _sumo_module(gui: bool) -> ModuleType:
     return libsumo
 
 
+# The AVs' SUMO modes (TraCI's setSpeedMode, setLaneChangeMode) by `av.shield`. none: speed mode 0, no safe speed
+# and no limits of acceleration (the env applies av.accel and av.decel itself), and lane change mode 0, no lane
+# changes of their own and a commanded one at once whatever the neighbours: AVs can crash. sumo: speed mode 31 (bits
+# 0-4: the car-following model's safe speed, the vType's acceleration and deceleration, right of way; SUMO's default)
+# and lane change mode 512 (bits 8-9 = 2: a commanded change only where it respects the others' speed and brake gaps;
+# bits 0-7 = 0: still no strategic, cooperative, speed-gain or keep-right changes of their own).
+AV_MODES: dict[str, tuple[int, int]] = {"none": (0, 0), "sumo": (31, 512)}
+
+
 class SumoSession:
     def __init__(self, net_file: Path, step_length: float, edge_index: dict[str, int],
                  kind_of: Callable[[str], int], extra_args: Sequence[str] = (), mingap_factor: float = 0.0,
-                 drive_avs: bool = True, gui: Gui | None = None) -> None:
+                 drive_avs: bool = True, gui: Gui | None = None, shield: str = "none") -> None:
         other = _LIVE.get(os.getpid())
         if other is not None:
             raise SimulationError(
@@ -93,6 +102,7 @@ class SumoSession:
         self._edge_index = edge_index  # edge id (normal or junction-internal) -> the snapshot's edge index
         self._kind_of = kind_of  # vehicle id -> KIND_*
         self.drive_avs = drive_avs  # False: SUMO's own models drive the AVs (the all-human baseline)
+        self.av_modes = AV_MODES[shield]  # (speed mode, lane change mode) of the AVs the env drives
         self.gui = gui
         self._sumo = _sumo_module(gui is not None)
         self.on_step: Callable[[], None] | None = None  # called after each SUMO step of `advance`
@@ -213,9 +223,10 @@ class SumoSession:
         if self.gui is not None and kind in self.gui.colours:
             ls.vehicle.setColor(vid, (*self.gui.colours[kind], 255))
         if self.drive_avs and kind == KIND_AV:
-            # The env drives AVs: no SUMO lane changing, no safety checks, so AVs can crash.
-            ls.vehicle.setLaneChangeMode(vid, 0)
-            ls.vehicle.setSpeedMode(vid, 0)
+            # The env drives AVs: no lane changes of SUMO's, its safety checks only with a shield (AV_MODES).
+            speed_mode, lane_change_mode = self.av_modes
+            ls.vehicle.setLaneChangeMode(vid, lane_change_mode)
+            ls.vehicle.setSpeedMode(vid, speed_mode)
             self._commanded[vid] = speed = ls.vehicle.getSpeed(vid)
             ls.vehicle.setSpeed(vid, speed)  # held from now on, not left to the car-following model
 

@@ -1,0 +1,126 @@
+"""Validation during training (`train.eval_every`), as SB3's `EvalCallback` and the RL zoo do it: greedy episodes
+on fixed seeds that neither training nor `cosim evaluate` plays, and the best policy kept by a stated rule.
+
+Contract:
+- `validation_seeds(episodes)` are `VALIDATION_SEED_START .. + episodes - 1`, the same at every validation: the
+  curve compares policies, not episodes. Training's seeds lie below `EVAL_SEED_START` and evaluation's default
+  ones just above it, so choosing the best checkpoint never looks at the episodes it is tested on.
+- `validate(pool, policy, seeds, update)` plays those episodes on the training run's own workers: every live AV
+  acts greedily (argmax among the actions its mask allows, in float32 as `cosim evaluate` plays a checkpoint),
+  one batched forward per round over every worker; each episode writes SUMO's outputs, so its row (the env's
+  episode summary, as `episodes.csv` and `cosim evaluate` have it) carries its SSM conflicts. A worker that fails
+  plays its episode again on its replacement; a second failure of the same seed is `EpisodeError`. The rows come
+  back in seed order, each with the AVs' mean greedy return (`av_return`).
+- `summarize(rows)` gives a validation's figures: crash and merge success [%] with Wilson intervals, conflicts,
+  the merging vehicle's distance and the return with t-intervals (`cosim.evaluation.stats`).
+- `better(new, best)` is the rule that keeps `best.pt`: the lower upper bound of the crash rate; at equal bounds
+  (the same crash count), the higher mean return, which is what the run optimises at its SVO angle.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+from agents.multiagent import MultiAgentPolicy
+from cosim.config import VALIDATION_SEED_START
+from cosim.errors import EpisodeError
+from cosim.evaluation import stats
+from cosim.workers import StepResult, WorkerPool
+
+# Validation's figures (validation.csv and TensorBoard name) -> the label of `cosim evaluate`'s summary.
+FIGURES: dict[str, str] = {"crash": "crash [%]", "merge": "merge success [%]", "conflicts": "conflicts [per episode]",
+                           "merger_distance": "merger distance [m]"}
+
+def validation_seeds(episodes: int) -> list[int]:
+    return [VALIDATION_SEED_START + k for k in range(episodes)]
+
+
+def validate(pool: WorkerPool, policy: MultiAgentPolicy, seeds: Sequence[int], update: int) -> list[dict[str, Any]]:
+    """The rows of the greedy episodes `seeds` played on `pool` (module doc)."""
+    todo = list(reversed(seeds))
+    playing: dict[int, int] = {}  # worker -> its episode's seed
+    returns: dict[int, np.ndarray] = {}  # worker -> (N,) its episode's returns so far
+    failed: set[int] = set()
+    rows: dict[int, dict[str, Any]] = {}
+
+    def start(ws: list[int]) -> None:
+        for w in ws:
+            returns[w] = np.zeros(len(pool.spec.agents))
+        pool.send_reset(ws, [playing[w] for w in ws], outputs=True)
+
+    first = list(range(min(len(pool), len(todo))))
+    for w in first:
+        playing[w] = todo.pop()
+    start(first)
+    while playing:
+        ws = list(playing)
+        restart, live = [], []
+        for w, res in zip(ws, pool.recv(ws), strict=True):
+            seed = playing[w]
+            if res.lost:
+                if seed in failed:
+                    raise EpisodeError(f"validation episode (seed {seed}) fails the same way on a fresh worker: "
+                                       f"{res.error}")
+                failed.add(seed)
+                restart.append(w)
+                continue
+            returns[w] += res.reward
+            if res.episode is not None:
+                # Per AV, as episodes.csv's return_mean (agents.train).
+                rows[seed] = {**res.episode, "seed": seed, "av_return": float(returns[w].mean())}
+                if todo:
+                    playing[w] = todo.pop()
+                    restart.append(w)
+                else:
+                    del playing[w]
+            else:
+                live.append((w, res))
+        if restart:
+            start(restart)
+        if live:
+            _act_greedy(pool, policy, live, update)
+    return [rows[s] for s in seeds]
+
+
+def _act_greedy(pool: WorkerPool, policy: MultiAgentPolicy, live: list[tuple[int, StepResult]], update: int) -> None:
+    """One batched greedy forward for the live agents of `live` workers; their actions go out at once."""
+    rows, agents, masks = [], [], []
+    for w, res in live:
+        idx = np.flatnonzero(res.alive)
+        rows += [w] * len(idx)
+        agents += idx.tolist()
+        masks.append(res.action_mask[idx])
+    obs = torch.from_numpy(pool.obs[rows, agents])  # (M, F, C, H, W) a copy out of the shared slots
+    actions = policy.act(obs, torch.tensor(agents), update, torch.from_numpy(np.concatenate(masks)),
+                         greedy=True)[0].numpy()
+    full = np.ones((len(live), len(pool.spec.agents)), dtype=np.int64)  # idle for agents that are gone
+    pos = {w: k for k, (w, _) in enumerate(live)}
+    full[[pos[w] for w in rows], agents] = actions
+    pool.send_step([w for w, _ in live], full)
+
+
+def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95) -> dict[str, float]:
+    """One validation's figures: `<name>`, `<name>_low`, `<name>_high` for each of `FIGURES` (the intervals of
+    `cosim evaluate`'s summary) and the AVs' mean greedy `return`, and `episodes_validated`."""
+    metrics = stats.summarize(rows, confidence, {label: stats.SUMMARY_METRICS[label] for label in FIGURES.values()})
+    ret = stats.mean_ci([float(r["av_return"]) for r in rows], confidence)
+    out: dict[str, float] = {"episodes_validated": float(len(rows))}
+    for name, label in FIGURES.items():
+        got = metrics.get(label, {"mean": math.nan, "ci_low": math.nan, "ci_high": math.nan})
+        out[name], out[f"{name}_low"], out[f"{name}_high"] = got["mean"], got["ci_low"], got["ci_high"]
+    out["return"], out["return_low"], out["return_high"] = ret.mean, ret.low, ret.high
+    return out
+
+
+def better(new: Mapping[str, float], best: Mapping[str, float] | None) -> bool:
+    """Whether validation `new` beats the best so far (module doc: crash upper bound, then return)."""
+    if best is None:
+        return True
+    if new["crash_high"] != best["crash_high"]:
+        return new["crash_high"] < best["crash_high"]
+    return new["return"] > best["return"]
