@@ -69,6 +69,7 @@ from cosim.workers import EnvFactory
 
 log = logging.getLogger(__name__)
 
+TORCH_THREADS = torch.get_num_threads()  # torch's default, before any run of this process set its own
 # validated: the episodes trained when the last validation ran (train.eval_every)
 COUNTERS = ("episodes", "updates", "samples", "restarts", "lost_episodes", "validated")
 NET_RECORD = "net.json"  # the net a run trains on (path, sha256, summary) and the scenario resolved on it
@@ -294,8 +295,10 @@ class _Run:
             self.counters.update({k: int(v) for k, v in payload["counters"].items() if k in COUNTERS})
             self.train_s = float(payload["counters"].get("train_s", 0.0))
             self.best = payload.get("best")
-        if tc.torch_threads:
-            torch.set_num_threads(tc.torch_threads)
+        # While the workers step, the learner's forwards take one thread: a second one would take a core from SUMO
+        # and wait at OpenMP's barriers whenever the kernel gives that core to a worker; the update, with the workers
+        # idle, takes all cores (scripts/bench_train.py measured both). train.torch_threads fixes both.
+        self.threads = {"act": tc.torch_threads or 1, "update": tc.torch_threads or TORCH_THREADS}
         random.seed(tc.seed)
         np.random.seed(tc.seed)
         torch.manual_seed(tc.seed)
@@ -372,6 +375,7 @@ class _Run:
         return [episode_seed(self.tc.seed, self.counters["updates"], w) for w in range(n)]
 
     def collect(self, seeds: list[int]) -> Collected:
+        torch.set_num_threads(self.threads["act"])
         t0 = time.perf_counter()
         got = collect(self.pool, self.policy, self.batch, seeds, self.counters["updates"])
         self.timing["rollout"] += time.perf_counter() - t0
@@ -379,6 +383,7 @@ class _Run:
         return got
 
     def learn(self) -> dict[str, float]:
+        torch.set_num_threads(self.threads["update"])
         t0 = time.perf_counter()
         update = self.counters["updates"]
         stats = self.policy.update(self.batch, self.tc, update, self.progress())
@@ -434,6 +439,7 @@ class _Run:
         if not every or not (c["episodes"] // every > c["validated"] // every
                              or (final and c["episodes"] > c["validated"])):
             return
+        torch.set_num_threads(self.threads["act"])
         t0 = time.perf_counter()
         fig = summarize(validate(self.pool, self.policy, validation_seeds(self.tc.eval_episodes), c["updates"]))
         spent = time.perf_counter() - t0

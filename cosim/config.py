@@ -689,7 +689,9 @@ class TrainConfig(_Section):
     max_restarts: Int = Field(100, ge=0, description="worker restarts tolerated over a run before it is stopped")
     step_timeout: Number = Field(
         60.0, gt=0, description="a worker silent this long is killed and restarted like a crashed one [s]")
-    torch_threads: Int = Field(0, ge=0, description="torch intra-op threads of the learner; 0 keeps torch's default")
+    torch_threads: Int = Field(
+        0, ge=0, description="torch intra-op threads of the learner; 0: one while the workers step, torch's default "
+        "(all cores) for the update")
     # On by default: a masked action is one that would do nothing (a lane change toward no through lane, which also
     # draws the invalid_action penalty; accelerate at the top target speed, decelerate at 0), so the policy spends
     # no probability or exploration on it, as MARL_CAVs does. Runs trained before it existed trained without it.

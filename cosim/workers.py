@@ -60,6 +60,9 @@ from cosim.errors import ConfigError, NetError, SimulationError
 log = logging.getLogger(__name__)
 
 START_ATTEMPTS = 3
+# Workers yield the CPU to the process that waits for them all (the learner acting for them, or updating): with more
+# workers than cores, a fair share would leave the learner a fraction of a core while everyone waits for its actions.
+WORKER_NICENESS = int(os.environ.get("COSIM_NICE", "10"))
 # [s] Starting a worker (imports, SUMO's start) takes longer than a step, more so on a loaded machine: a short
 # step timeout must not turn every replacement into another timeout.
 START_TIMEOUT = 120.0
@@ -284,6 +287,7 @@ def _worker_main(conn: Connection, env_factory: EnvFactory, tmp_root: str) -> No
     global _CALLER
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the learner's to handle
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    os.nice(WORKER_NICENESS)
     # The env's temporary files go into the pool's folder, which the pool removes even if this process is killed.
     tempfile.tempdir = tmp_root
     env = None
