@@ -4,6 +4,7 @@ Contract: `atomic_path(path)` yields a temporary path beside `path` that replace
 succeeded (a reader sees the old file or the new one, never half of one), with the permissions any new file
 of the user gets (the umask's, not mkstemp's private 0600); a failed write (a full disk) removes the temporary file
 and raises an OSError naming `path`, not the temporary; `atomic_write_text` is its text shortcut;
+`write_json(path, data)` writes strict JSON atomically (NaN as null, `strict_json`).
 `stale_temporaries(folder, name)` lists what an interrupted atomic write of `name` left behind. `AppendCsv`
 appends rows flushed one by one, keeps an existing file's header (a row with a new key widens it; a missing
 key is an empty cell), and drops a half-written last line left by an interrupted run, so runs can resume.
@@ -20,6 +21,8 @@ from __future__ import annotations
 import csv
 import fcntl
 import io
+import json
+import math
 import os
 import shutil
 import tempfile
@@ -74,6 +77,23 @@ def _as_write_of(exc: OSError, tmp: str | None, path: Path) -> OSError:
 def atomic_write_text(path: Path, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+def strict_json(data: Any) -> Any:
+    """`data` with every non-finite float (NaN: an interval of one value, a metric no episode had) as None, so that
+    it is written as null: strict JSON parsers refuse the bare NaN Python's json writes by default."""
+    if isinstance(data, float):
+        return data if math.isfinite(data) else None
+    if isinstance(data, Mapping):
+        return {k: strict_json(v) for k, v in data.items()}
+    if isinstance(data, list | tuple):
+        return [strict_json(v) for v in data]
+    return data
+
+
+def write_json(path: Path, data: Any) -> None:
+    """`data` as strict JSON (`strict_json`), indented, written atomically."""
+    atomic_write_text(path, json.dumps(strict_json(data), indent=2, allow_nan=False) + "\n")
 
 
 def stale_temporaries(folder: Path, name: str) -> list[Path]:

@@ -31,11 +31,11 @@ import gymnasium
 import numpy as np
 from pettingzoo import ParallelEnv
 
-from cosim.config import Config, check_seed
+from cosim.config import SEED_MAX, Config, check_seed
 from cosim.environment.control import N_ACTIONS, decide
 from cosim.environment.episode import MergeZone
 from cosim.environment.flow_record import FlowRecorder
-from cosim.environment.merge_env import ActionError, agent_masks, checked_action
+from cosim.environment.merge_env import agent_masks, checked_actions
 from cosim.environment.reward import StepChange, svo_rewards, utility_terms, weighted_utility
 from cosim.environment.velocity_map import VelocityMapper, rasterize_road
 from cosim.errors import ConfigError
@@ -108,7 +108,7 @@ class DemandEnv(ParallelEnv):
         if self._closed:
             raise RuntimeError("reset() after close(): this env is closed; make a new one")
         seed = check_seed("seed", self._next_seed if seed is None else seed)
-        self._next_seed = seed + 1
+        self._next_seed = (seed + 1) % (SEED_MAX + 1)  # past SUMO's last seed, the sequence starts again at 0
         self.episode_seed = seed
         if self._tmp is None:
             self._tmp = Path(tempfile.mkdtemp(prefix="env_", dir=run_folder()))
@@ -143,7 +143,7 @@ class DemandEnv(ParallelEnv):
             raise RuntimeError("step() after close(): this env is closed; make a new one" if self._closed
                                else "step() before reset()")
         acting = list(self.agents)
-        actions = self._checked(actions, acting)
+        actions = checked_actions(actions, acting, self.possible_agents)
         prev = self._snap
         snap, rewards, crashed = self._decision(prev, acting, actions)
         obs, rew, term, trunc, infos = {}, {}, {}, {}, {}
@@ -180,14 +180,6 @@ class DemandEnv(ParallelEnv):
             infos.setdefault(a, {})["action_mask"] = mask
 
     # -- the decision -------------------------------------------------------------------------------
-    def _checked(self, actions: Mapping[str, Any], acting: list[str]) -> dict[str, int]:
-        if not isinstance(actions, Mapping):
-            raise ActionError(f"step(): expected a dict of agent -> action, got {type(actions).__name__}")
-        missing = [a for a in acting if a not in actions]
-        if missing:
-            raise ActionError(f"step(): no action for live agents {missing}")
-        return {a: checked_action(a, actions[a]) for a in acting}
-
     def _decision(self, prev: Snapshot, acting: list[str], actions: Mapping[str, int]
                   ) -> tuple[Snapshot, dict[str, float], set[str]]:
         """Apply the actions, simulate one decision period, read the new state; (snapshot, rewards, crashed)."""

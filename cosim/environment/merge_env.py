@@ -53,7 +53,7 @@ import numpy as np
 from pettingzoo import AECEnv, ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
-from cosim.config import AVConfig, Config, check_seed, load_config
+from cosim.config import SEED_MAX, AVConfig, Config, check_seed, load_config
 from cosim.environment.control import N_ACTIONS, Action, action_mask, decide
 from cosim.environment.episode import EndCheck, MergeZone, episode_end, merge_status
 from cosim.environment.reward import StepChange, svo_rewards, utility_terms, weighted_utility
@@ -91,6 +91,26 @@ def checked_action(agent: str, value: Any) -> int:
         return int(value)
     raise ActionError(f"step(): agent {agent!r}: action {reprlib.repr(value)} ({type(value).__name__}) is not "
                       f"allowed; expected {ALLOWED_ACTIONS}")
+
+
+def checked_actions(actions: Mapping[str, Any], live: Sequence[str], possible: Sequence[str]) -> dict[str, int]:
+    """Every live agent's action as an int, or `ActionError`: for actions that are not a dict, a live agent without
+    one, an agent the env does not have (not in `possible`), or an action that is none (`checked_action`). The
+    actions of agents that are done are dropped unchecked: PettingZoo's AEC form steps them with None, SuperSuit's
+    black death and a loop over the last observations hand them over too."""
+    if not isinstance(actions, Mapping):
+        raise ActionError(f"step(): expected a dict of agent -> action, got {type(actions).__name__}")
+    missing = [a for a in live if a not in actions]
+    if missing:
+        raise ActionError(f"step(): no action for live agents {missing}; each takes {ALLOWED_ACTIONS}")
+    if len(actions) > len(live):
+        known = set(possible)
+        unknown = [a for a in actions if a not in known]
+        if unknown:
+            shown = list(possible) if len(possible) <= 8 else f"{possible[0]} .. {possible[-1]}"
+            raise ActionError(f"step(): unknown agent {unknown[0]!r}; this env's agents are {shown} (live now: "
+                              f"{list(live)}), each taking {ALLOWED_ACTIONS}")
+    return {a: checked_action(a, actions[a]) for a in live}
 
 
 def agent_masks(snap: Snapshot, zone: MergeZone, agents: Sequence[str], targets: np.ndarray,
@@ -169,7 +189,7 @@ class MergeEnv(ParallelEnv):
         # A plain int (numpy's would reach the summary, which json refuses) in SUMO's range, or `SeedError`
         # (a ValueError) naming `seed`; None takes the next seed (sim.seed first).
         seed = check_seed("seed", self._next_seed if seed is None else seed)
-        self._next_seed = seed + 1
+        self._next_seed = (seed + 1) % (SEED_MAX + 1)  # past SUMO's last seed, the sequence starts again at 0
         self.episode_seed = seed
         if self._tmp is None:
             self._tmp = Path(tempfile.mkdtemp(prefix="env_", dir=run_folder()))  # named after its owner: a kill -9
@@ -273,20 +293,7 @@ class MergeEnv(ParallelEnv):
         return agent_masks(snap, self.zone, agents, self._target[idx], self.cfg.av)
 
     def _checked_actions(self, actions: Mapping[str, Any]) -> dict[str, int]:
-        """Every live agent's action as an int, or `ActionError`. The actions of agents that are done are
-        dropped unchecked: PettingZoo's AEC form steps them with None, SuperSuit's black death and a loop over
-        the last observations hand them over too."""
-        if not isinstance(actions, Mapping):
-            raise ActionError(f"step(): expected a dict of agent -> action, got {type(actions).__name__}")
-        missing = [a for a in self.agents if a not in actions]
-        if missing:
-            raise ActionError(f"step(): no action for live agents {missing}; each takes {ALLOWED_ACTIONS}")
-        if len(actions) > len(self.agents):
-            unknown = [a for a in actions if a not in self.possible_agents]
-            if unknown:
-                raise ActionError(f"step(): unknown agent {unknown[0]!r}; this env's agents are "
-                                  f"{self.possible_agents} (live now: {self.agents}), each taking {ALLOWED_ACTIONS}")
-        return {a: checked_action(a, actions[a]) for a in self.agents}
+        return checked_actions(actions, self.agents, self.possible_agents)
 
     # -- step hooks ---------------------------------------------------------------------------------
     def _act(self, prev: Snapshot, acting: list[str], idx: np.ndarray,

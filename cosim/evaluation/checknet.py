@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from cosim.config import EVAL_SEED_START, Config
+from cosim.errors import ConfigError
 from cosim.evaluation.runner import Baseline, evaluate
 from cosim.evaluation.stats import format_table
 from cosim.files import atomic_write_text
@@ -107,6 +108,10 @@ def check_net(cfg: Config, out_dir: Path, episodes: int = 100, max_episodes: int
     """Check `cfg`'s net (see the module doc); with `suggest`, where the merge is no dilemma, measure the advice's
     settings in turn (`episodes` each) and report the first that makes it one. `say` prints each part as it is
     known. Returns what check.json holds."""
+    if cfg.demand.enabled:
+        raise ConfigError("demand.enabled: check-net judges the episode scenario (whether the merge is a dilemma); "
+                          "check the net with an episode config (e.g. --config configs/default.yaml --net NET), then "
+                          "evaluate under demand: cosim evaluate --config CONFIG --net NET")
     net = load_net(cfg.net.file, cfg.net.description)
     summary = net_summary(net)
     resolved = resolve(cfg, net)

@@ -34,7 +34,7 @@ from cosim.errors import CosimError
 from cosim.evaluation import plots
 from cosim.evaluation.stats import SUMMARY_METRICS, format_table, summarize
 from cosim.evaluation.store import Evaluation, checked_rows, find_evaluation, video_files
-from cosim.files import atomic_write_text, column, write_csv
+from cosim.files import atomic_write_text, column, write_csv, write_json
 from cosim.sumo.setting import setting_lines
 
 log = logging.getLogger(__name__)
@@ -92,7 +92,7 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
                                 *video_files(e.eval_dir)]
     result = {e.label: {**e.summary, "episodes": episodes[e.label], "metrics": metrics[e.label],
                         "eval_dir": str(e.eval_dir)} for e in evals}
-    atomic_write_text(out_dir / "summary.json", json.dumps(result, indent=2) + "\n")
+    write_json(out_dir / "summary.json", result)
     write_csv(out_dir / "summary.csv", _summary_rows(metrics), ["run", "metric", "mean", "ci_low", "ci_high", "n"])
     atomic_write_text(out_dir / "report.md", _report(evals, metrics, episodes, figures, per_run, out_dir,
                                                      mismatches))

@@ -14,7 +14,6 @@ side (`cosim compare`, `cosim sweep`). Every figure is titled and captioned with
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ from matplotlib.figure import Figure
 
 from cosim.evaluation.flow import LOS_BOUNDS, PER_MILE
 from cosim.evaluation.plots import add_caption, bars, save
+from cosim.evaluation.store import read_summary
 from cosim.sumo.flow_outputs import read_flow_outputs
 
 FLOW_BARS = ("throughput, total [veh/h]", "throughput, ramp [veh/h]", "ramp queue, mean [veh]",
@@ -42,7 +42,7 @@ def demand_caption(summary: Mapping[str, Any], label: str) -> str:
 
 
 def plot_demand(eval_dir: Path, plots_dir: Path, label: str, seeds: Sequence[int]) -> list[Path]:
-    summary = json.loads((eval_dir / "summary.json").read_text(encoding="utf-8"))
+    summary = read_summary(eval_dir / "summary.json")
     caption = demand_caption(summary, label)
     runs = [eval_dir / "sumo" / f"run_{s}" for s in seeds if (eval_dir / "sumo" / f"run_{s}" / "record.npz").is_file()]
     if not runs:

@@ -55,7 +55,7 @@ from cosim.environment.policies import POLICIES
 from cosim.errors import ConfigError, CosimError, EpisodeError, check_at_least
 from cosim.evaluation.flow import demand_setting, demand_summary, run_row
 from cosim.evaluation.store import config_hash, save_trajectory, scenario_hash, summarize_evaluation
-from cosim.files import AppendCsv, FolderLock, FolderState, atomic_write_text, read_csv
+from cosim.files import AppendCsv, FolderLock, FolderState, atomic_write_text, read_csv, write_json
 from cosim.progress import Heartbeat
 from cosim.sumo.setting import setting
 from cosim.workers import START_TIMEOUT, WorkerPool, keep_alive
@@ -316,7 +316,7 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
                    "distance_check_max_m": max(checks) if checks else math.nan, "setting": where}
         if cfg.demand.enabled:
             summary["demand"] = {**demand_setting(cfg), **demand_summary(rows, metrics)}
-        atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=2, allow_nan=True) + "\n")
+        write_json(out_dir / "summary.json", summary)
         if checks and max(checks) > 0.5:
             log.warning("our distances and SUMO's tripinfo differ by up to %.2f m", max(checks))
         figures: list[Path] = []

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,6 +58,11 @@ def read_summary(path: Path) -> dict[str, Any]:
         value = summary.get(key)
         if key in summary and (isinstance(value, bool) or not isinstance(value, types)):
             raise CosimError(f"{path}: {key} {value!r} is not {' or '.join(t.__name__ for t in types)}; {rerun}")
+    # Figures without a value are written as null (strict JSON): NaN again for the readers' arithmetic.
+    for label, stats in summary.get("metrics", {}).items():
+        summary["metrics"][label] = {k: math.nan if v is None else v for k, v in stats.items()}
+    if isinstance(summary.get("demand"), dict):
+        summary["demand"] = {k: math.nan if v is None else v for k, v in summary["demand"].items()}
     return summary
 
 

@@ -10,7 +10,10 @@ Contract:
   (warm-up, window, horizon [s]), the capacities used, and the sizes an env needs: `max_avs`, the AVs a run can
   release (the count, or the penetration's expected number plus six standard deviations), `slots`, the most
   present at once (`demand.max_avs_present`, or estimated from the AV flow and the highway's length at half
-  its speed limit, tripled).
+  its speed limit, tripled; never more than `max_avs`). Sizes that would take the machine's memory are a
+  `ConfigError` naming the key and the bound, before anything is allocated: an `av_count` above the mainline
+  vehicles the demand releases (their expected number plus six standard deviations), and slots whose observations
+  exceed `MAX_SLOT_VALUES` values.
 - `plan_demand(cfg, net, seed)` -> the run's `Arrival`s: exponential headways per highway lane and on the ramp
   from t = 0 to the horizon, each mainline vehicle an AV with the penetration's probability (or `av_count` AVs
   drawn among them), AVs named `av_0, av_1, ...` in order of departure (an AV beyond `max_avs`, unlikely by
@@ -30,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from cosim.config import Config
+from cosim.errors import ConfigError
 from cosim.sumo.net import Net
 from cosim.sumo.netdesc import NetDescription
 from cosim.sumo.scenario import MERGER_ID, av_id, av_vtype_xml, routes_xml, vtype_xml
@@ -70,6 +74,10 @@ class Demand:
         return self.mainline_vph * self.mainline_lanes
 
 
+# Observation values of every slot of a demand run at most: a worker keeps two stacks per slot (256 MiB as uint8).
+MAX_SLOT_VALUES = 2**28
+
+
 def resolve_demand(cfg: Config, net: Net) -> Demand:
     d = cfg.demand
     first = net.desc.highway[0]
@@ -80,17 +88,36 @@ def resolve_demand(cfg: Config, net: Net) -> Demand:
     mainline = d.mainline_vph if d.mainline_vph is not None else d.mainline_share * cap
     ramp = d.ramp_vph if d.ramp_vph is not None else d.ramp_share * ramp_cap
     horizon = d.warmup + d.window
+    released = _most(mainline * lanes * horizon / 3600.0)  # mainline vehicles of a run, at most
     if d.av_count is not None:
+        if d.av_count > released:
+            raise ConfigError(f"demand.av_count: {d.av_count} AVs, but the mainline demand ({mainline * lanes:.0f} "
+                              f"veh/h on {lanes} lane(s)) releases about {mainline * lanes * horizon / 3600:.0f} "
+                              f"vehicles over warmup + window ({horizon:g} s), at most {released}; give at most "
+                              f"{released}, or more demand or a longer window")
         max_avs = d.av_count
         rate = d.av_count / horizon  # [AV/s]
     else:
-        expected = d.av_penetration * mainline * lanes * horizon / 3600.0
-        max_avs = int(math.ceil(expected + 6.0 * math.sqrt(expected))) + (1 if expected > 0 else 0)
+        max_avs = _most(d.av_penetration * mainline * lanes * horizon / 3600.0)
         rate = d.av_penetration * mainline * lanes / 3600.0
     crossing = net.highway_length / (0.5 * net.speed_limit)  # [s] through the net at half the limit
-    slots = d.max_avs_present or min(max_avs, int(math.ceil(3.0 * rate * crossing)) + 4)
+    slots = min(d.max_avs_present or int(math.ceil(3.0 * rate * crossing)) + 4, max_avs)
+    o = cfg.observation
+    values = o.frames * len(o.channels) * o.height_px * o.width_px  # type: ignore[operator]  # resolved sizes
+    if slots * values > MAX_SLOT_VALUES:
+        fit = MAX_SLOT_VALUES // values
+        key = "demand.max_avs_present" if d.max_avs_present else "demand (its AVs present at once)"
+        raise ConfigError(f"{key}: {slots} observation slots of {values:,} values each exceed the bound of "
+                          f"{MAX_SLOT_VALUES:,} values ({MAX_SLOT_VALUES // 2**20} MiB as uint8; a worker keeps two "
+                          f"stacks per slot): at most {fit} slots at this observation size; set "
+                          f"demand.max_avs_present to at most {fit}, or a smaller observation")
     return Demand(mainline, lanes, ramp, ramp_lanes, d.av_penetration, d.av_count, d.warmup, d.window, horizon,
                   cap, ramp_cap, max_avs, max(slots, 1 if max_avs else 0))
+
+
+def _most(expected: float) -> int:
+    """The most vehicles a Poisson arrival process with this mean gives in practice: six standard deviations above."""
+    return int(math.ceil(expected + 6.0 * math.sqrt(expected))) + (1 if expected > 0 else 0)
 
 
 @dataclass(frozen=True)

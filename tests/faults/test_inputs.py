@@ -4,6 +4,8 @@ not created, every file in the working folder as it was, nothing left in the tem
 
 from __future__ import annotations
 
+import resource
+import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -79,7 +81,19 @@ CASES = {
     "horizon not whole decisions": (_run_scenario("--set", "sim.horizon=10.5"),
                                     "sim.horizon: must be a whole number of decision periods"),
 }
+DEMAND = str(Path(__file__).resolve().parents[2] / "configs" / "demand.yaml")
+SHORT_DEMAND = ("--set", "demand.warmup=30", "--set", "demand.window=60")
 NEEDS_SUMO = {
+    # More AVs than the demand releases: each would be an agent with its observation slot (22 GB, then killed).
+    "demand.av_count": (["evaluate", "--config", DEMAND, *SHORT_DEMAND, "--set", "demand.av_count=100000", "--policy",
+                         "courteous", "--episodes", "1", "--no-plots", "--out", "out"],
+                        "demand.av_count: 100000 AVs, but the mainline demand (2880 veh/h on 2 lane(s)) releases about "
+                        "72 vehicles over warmup + window (90 s), at most 124"),
+    "demand's slots": (["evaluate", "--config", DEMAND, "--set", "demand.av_count=400", "--set",
+                        "demand.max_avs_present=400", "--set", "observation.preset=paper", "--policy", "courteous",
+                        "--episodes", "1", "--no-plots", "--out", "out"],
+                       "demand.max_avs_present: 400 observation slots of 1,310,720 values each exceed the bound of "
+                       "268,435,456 values (256 MiB as uint8; a worker keeps two stacks per slot): at most 204 slots"),
     # This one loads the net before it can know the seeds of every episode.
     "sim.seed and episodes": (_run_scenario("--set", f"sim.seed={SEED_MAX}", "--episodes", "2"),
                               "sim.seed: expected an integer in [0, 2147483646], so that the seeds of all 2"),
@@ -109,3 +123,19 @@ def test_bad_input_is_one_line_before_anything_is_written(cli: Any, tmp_path: Pa
 def _state(cli: Any, folder: Path) -> dict[str, str]:
     # The command's TMPDIR is the Cli's to check (torch may keep its caches there).
     return {k: v for k, v in cli.folder_state(folder).items() if not k.startswith("tmpdir/")}
+
+
+@pytest.mark.sumo
+def test_unbounded_avs_under_demand_end_in_one_line_under_a_memory_limit(cli: Any) -> None:
+    """Before the bound, `av_count=20000` under a memory limit ended in numpy's out-of-memory traceback (and without
+    one the process grew until the kernel killed it); the limit is this test's, never the machine's."""
+    limit = 4 * 2**30
+
+    def limited() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+
+    proc = subprocess.run(cli.cmd("evaluate", "--config", DEMAND, *SHORT_DEMAND, "--set", "demand.av_count=20000",
+                                  "--policy", "courteous", "--episodes", "1", "--no-plots", "--out", "out"),
+                          cwd=cli.folder, capture_output=True, text=True, timeout=120, env=cli.env(),
+                          preexec_fn=limited)
+    cli.assert_clean_error(proc, "demand.av_count: 20000 AVs")

@@ -17,7 +17,8 @@ from agents.checkpoint import read_checkpoint
 
 pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
-SMOKE = str(Path(__file__).resolve().parents[2] / "configs" / "smoke.yaml")
+ROOT = Path(__file__).resolve().parents[2]
+SMOKE = str(ROOT / "configs" / "smoke.yaml")
 
 
 @pytest.fixture(scope="module")
@@ -47,6 +48,9 @@ def smoke_run(tmp_path_factory: pytest.TempPathFactory, cli_class: type) -> Path
     (["train", "--config", SMOKE, "--out", "run", "--set", "demand.enabled=true"],
      "demand.enabled: training runs on the episode scenario"),
     (["check-net", "no_such.net.xml"], "no_such.net.xml: not found"),
+    (["check-net", str(ROOT / "sumo_net" / "dilemma" / "dilemma.net.xml"), "--config",
+      str(ROOT / "configs" / "demand.yaml")],
+     "demand.enabled: check-net judges the episode scenario"),
     (["run-scenario", "--config", SMOKE, "--net", "no_such.net.xml"], "--net no_such.net.xml: not found"),
     (["evaluate", "--config", SMOKE, "--policy", "idle", "--out", "x", "--set", "demand.enabled=true",
       "--set", "demand.warmup=45"], "demand.warmup: must be a whole number of demand.interval"),

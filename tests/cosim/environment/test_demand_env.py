@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 from pettingzoo.test import parallel_api_test
 
-from cosim.config import load_config
+from cosim.config import SEED_MAX, load_config
 from cosim.environment.control import Action
 from cosim.environment.demand_env import DemandEnv
+from cosim.environment.merge_env import ActionError
 from cosim.errors import ConfigError
 from cosim.sumo.demand import plan_demand, resolve_demand
 from cosim.sumo.net import load_net
@@ -92,5 +93,29 @@ def test_too_few_observation_slots_is_one_line_naming_the_key() -> None:
             env.reset(seed=1)
             while env.agents:
                 env.step(dict.fromkeys(env.agents, int(Action.IDLE)))
+    finally:
+        env.close()
+
+
+def test_an_unknown_agent_is_an_action_error_as_in_the_episode_env() -> None:
+    env = _env()
+    try:
+        env.reset(seed=5)
+        while not env.agents:  # AVs enter after a while
+            env.step({})
+        actions = dict.fromkeys(env.agents, 1)
+        for bogus in ("bogus", f"av_{len(env.possible_agents)}"):
+            with pytest.raises(ActionError, match=f"unknown agent '{bogus}'"):
+                env.step({**actions, bogus: 1})
+    finally:
+        env.close()
+
+
+def test_the_seed_sequence_starts_again_at_0_past_sumos_last_seed() -> None:
+    env = _env()
+    try:
+        env.reset(seed=SEED_MAX)
+        _, infos = env.reset()  # the next seed of the sequence, which SUMO cannot take: 0
+        assert env.episode_seed == 0
     finally:
         env.close()

@@ -458,3 +458,11 @@ def test_a_numpy_seed_gives_a_plain_int_summary() -> None:
     summary = next(iter(info.values()))["episode"]
     assert type(summary["seed"]) is int and summary["seed"] == 5
     assert json.loads(json.dumps(summary))["seed"] == 5
+
+
+def test_the_seed_sequence_starts_again_at_0_past_sumos_last_seed(env: MergeEnv) -> None:
+    from cosim.config import SEED_MAX
+
+    env.reset(seed=SEED_MAX)
+    _, info = env.reset()  # the seed after SUMO's last, which the user never gave: 0, not a SeedError
+    assert info["av_0"]["seed"] == 0

@@ -72,6 +72,18 @@ def test_evaluation_files_and_summary(idle_eval: Path) -> None:
         assert _is_png(idle_eval / "plots" / name), name
 
 
+def test_summary_is_strict_json_with_null_where_a_figure_has_no_value(tmp_path: Path) -> None:
+    def refuse(constant: str) -> None:
+        raise ValueError(f"not JSON: {constant}")
+
+    summary = evaluate(_cfg(), Baseline("idle"), tmp_path / "one", episodes=1, trajectories=0, plots=False)
+    assert not math.isnan(summary["metrics"]["crash [%]"]["ci_low"])  # a rate has a Wilson interval at n = 1
+    strict = json.loads((tmp_path / "one" / "summary.json").read_text(), parse_constant=refuse)
+    assert strict["metrics"]["mean distance [m]"]["ci_low"] is None  # one episode: no t-interval
+    compare([tmp_path / "one"], tmp_path / "report")
+    json.loads((tmp_path / "report" / "summary.json").read_text(), parse_constant=refuse)
+
+
 def test_resume_skips_done_episodes_and_drops_a_partial_row(idle_eval: Path, tmp_path: Path) -> None:
     out = tmp_path / "resumed"
     shutil.copytree(idle_eval, out)

@@ -88,11 +88,15 @@ def test_bad_input_is_one_line(args: list[str], message: str, monkeypatch: pytes
 
 @pytest.fixture(scope="module")
 def display() -> Iterator[str]:
-    """An Xvfb display of its own for sumo-gui; CI has Xvfb (`.ci/run` installs it), so it must be here too."""
+    """An Xvfb display of its own for sumo-gui. CI has Xvfb (`.ci/run` installs it): there, without it, the test
+    fails; on a user's machine without it (the README's test command as written), it is skipped, saying so."""
     xvfb = shutil.which("Xvfb")
     if xvfb is None:
-        pytest.fail("Xvfb not found: sumo-gui needs a display; .ci/run installs it (apt-get install xvfb "
-                    "libgl1-mesa-dri libglx-mesa0)")
+        why = ("Xvfb not found: sumo-gui needs a display; .ci/run installs it (apt-get install xvfb "
+               "libgl1-mesa-dri libglx-mesa0)")
+        if os.environ.get("CI"):
+            pytest.fail(why)
+        pytest.skip(why)
     read, write = os.pipe()
     # -noreset: Xvfb resets when its last client leaves and writes its number to -displayfd again; without a
     # reader that write fails and the server exits (seen here), so the pipe stays open to the end too.
