@@ -104,8 +104,9 @@ RESUMABLE = frozenset({"train.episodes", "train.budget_min", "train.checkpoint_e
                        "train.eval_every", "train.eval_episodes",
                        "train.log_every_s", "train.step_timeout", "train.max_restarts", "train.torch_threads",
                        "train.device", *(f"safety.{key}" for key in SafetyConfig.model_fields)})
-# What a run from before a key existed did, for the resume's comparison: it trained without action masks.
-UNRECORDED = {"train.action_mask": False}
+# What a run from before a key existed did, for the resume's comparison: it trained without action masks, and
+# without a safety layer.
+UNRECORDED = {"train.action_mask": False, "av.shield": "none"}
 
 
 def run_config(cfg: Config, tc: TrainConfig) -> dict[str, Any]:
@@ -260,8 +261,13 @@ class _Run:
             changes = config_changes(out_dir / "config.yaml", run_config(cfg, tc)) if resume else {}
             if changes and not allow_change:
                 listed = "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changes.items())
+                # A run from before a key existed: its config.yaml lacks the key, which reads as today's default.
+                older = [f"--set {k}={yaml.safe_dump(old).splitlines()[0]}" for k, (old, _) in changes.items()
+                         if k in UNRECORDED and old == UNRECORDED[k]]
+                keys = "that key" if len(older) == 1 else "those keys"
+                how = f" {' '.join(older)}: the run is from before {keys} existed" if older else ""
                 raise ConfigError(f"--resume {out_dir}: the config differs from the run's ({listed}); resume with "
-                                  "the run's config (cosim train --config RUN/config.yaml), or pass "
+                                  f"the run's config (cosim train --config RUN/config.yaml{how}), or pass "
                                   "--allow-config-change to continue with the new one (recorded in "
                                   "RUN/config_changes.yaml)")
             if payload is not None:

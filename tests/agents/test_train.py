@@ -250,7 +250,9 @@ def test_a_run_from_before_the_masks_and_safety_measures_resumes_as_it_trained(t
     saved = yaml.safe_load((run / "config.yaml").read_text())
     del saved["safety"], saved["train"]["action_mask"]
     (run / "config.yaml").write_text(yaml.safe_dump(saved))
-    with pytest.raises(ConfigError, match=r"\(train\.action_mask: False -> True\);"):
+    with pytest.raises(ConfigError, match=r"\(train\.action_mask: False -> True\); resume with the run's config "
+                       r"\(cosim train --config RUN/config.yaml --set train.action_mask=false: the run is from before "
+                       r"that key existed\)"):
         train(cfg_with(), run, workers=1, episodes=4, resume=True, env_factory=make_fake_env(n_agents=2),
               progress=False)
     resumed = train(cfg_with(action_mask=False), run, workers=1, episodes=4, resume=True,
