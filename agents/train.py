@@ -305,6 +305,8 @@ class _Run:
         # and wait at OpenMP's barriers whenever the kernel gives that core to a worker; the update, with the workers
         # idle, takes all cores (scripts/bench_train.py measured both). train.torch_threads fixes both.
         self.threads = {"act": tc.torch_threads or 1, "update": tc.torch_threads or TORCH_THREADS}
+        # The initial weights too depend on the thread count (orthogonal init's QR), whatever ran before here.
+        torch.set_num_threads(self.threads["update"])
         random.seed(tc.seed)
         np.random.seed(tc.seed)
         torch.manual_seed(tc.seed)

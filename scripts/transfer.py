@@ -40,7 +40,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/transfer"))
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
-    from agents.checkpoint import TrainedPolicy, find_checkpoint  # torch only once the input is checked
+    from agents.checkpoint import TrainedPolicy, describe_checkpoint, find_checkpoint  # torch only once checked
 
     t0 = time.perf_counter()
     run_cfg = load_config(args.run / "config.yaml")
@@ -51,7 +51,9 @@ def main() -> None:
             net = build_shape(shape, net.parent)
             net.with_name(f"{shape}.yaml").unlink()
         nets[shape] = net
-    trained = TrainedPolicy(str(find_checkpoint(args.run, None)), greedy=True)
+    played = find_checkpoint(args.run, None)
+    log.info("policy: %s", describe_checkpoint(played))
+    trained = TrainedPolicy(str(played), greedy=True)
     results: dict[str, dict[str, dict]] = {}
     for name, net in nets.items():
         cfg = load_config(run_cfg, [f"net.file={net.resolve()}", "net.description=null"])
