@@ -12,6 +12,8 @@ Contract:
   with the expected obs shape / dtype / number of agents / policy layout.
 - `save_policy(path, payload, **extra)` writes the policy file of a payload alone (`best.pt`: the policy that did
   best in validation, with its figures as `validation`).
+- `export_policy(src, dst)` writes a run's networks as a policy file in float16 (a shipped policy, a run's
+  progress committed between sessions).
 - `load_policy(path)` (a run folder, its `policy.pt` or `best.pt`, or a checkpoint) returns `(policies, meta)`:
   `policies` maps each agent name to its trained `ActorCritic` (eval mode; the same object for every agent when the
   policy is shared), whose `act(obs (B, F, C, H, W), greedy)` gives actions; `meta` holds the checkpoint's
@@ -87,6 +89,20 @@ def save_policy(path: Path, payload: dict[str, Any], **extra: Any) -> None:
                               f"previous one is unchanged") from None
 
 
+def export_policy(src: Path, dst: Path, dtype: torch.dtype = torch.float16) -> None:
+    """A policy file (`policy.pt`, `best.pt`) or checkpoint's networks as a policy file at `dst` with its weights in
+    `dtype` (float16: half the size, for a repository; `load_policy` loads them into float32 networks), written
+    atomically; the spec, counters, config and validation figures go along."""
+    payload = torch.load(src, map_location="cpu", weights_only=True)
+    if payload.get("format") == FORMAT:
+        payload = policy_payload(payload)
+    elif payload.get("format") != POLICY_FORMAT:
+        raise CheckpointError(f"{src}: neither a {POLICY_FORMAT} file nor a {FORMAT} checkpoint")
+    nets = [{k: v.to(dtype) if v.is_floating_point() else v for k, v in sd.items()} for sd in payload["nets"]]
+    with atomic_path(dst) as tmp:
+        _save({**payload, "nets": nets, "dtype": str(dtype).removeprefix("torch.")}, tmp)
+
+
 def _save(obj: Any, path: Path) -> None:
     """`torch.save` into `path`; a failed write (a full disk) is an OSError naming `path`."""
     # Through a file of ours: a failed write is then the context of the RuntimeError that torch's zip writer
@@ -110,11 +126,18 @@ def read_checkpoint(path: Path, expect: dict[str, Any] | None = None) -> dict[st
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path}: not found")
+    return _checked_checkpoint(_load(path), path, expect)
+
+
+def _load(path: Path) -> Any:
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:
         raise CheckpointError(f"checkpoint {path}: corrupt or not a checkpoint ({type(exc).__name__}: "
                               f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
+
+
+def _checked_checkpoint(payload: Any, path: Path, expect: dict[str, Any] | None = None) -> dict[str, Any]:
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {path}: not a {FORMAT} checkpoint")
     if payload.get("version") != VERSION:
@@ -163,11 +186,7 @@ def build_net(spec: dict[str, Any]) -> ActorCritic:
                        head_hidden=spec["head_hidden"])
 
 
-def _read_policy_file(path: Path) -> dict[str, Any]:
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        raise CheckpointError(f"policy file {path}: corrupt ({type(exc).__name__})") from None
+def _checked_policy_file(payload: Any, path: Path) -> dict[str, Any]:
     if not isinstance(payload, dict) or payload.get("version") != VERSION or "nets" not in payload:
         raise CheckpointError(f"policy file {path}: not a {POLICY_FORMAT} file of version {VERSION}")
     return payload
@@ -181,11 +200,13 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[dict[str, ActorC
         path = path / POLICY_NAME if (path / POLICY_NAME).is_file() else path / CHECKPOINT_NAME
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path}: not found")
-    if path.name in (POLICY_NAME, BEST_NAME):
-        payload = _read_policy_file(path)
+    payload = _load(path)
+    # By its content, whatever its name: a shipped or exported policy file may be called anything.
+    if isinstance(payload, dict) and payload.get("format") == POLICY_FORMAT:
+        payload = _checked_policy_file(payload, path)
         state = payload["nets"]
     else:
-        payload = read_checkpoint(path)
+        payload = _checked_checkpoint(payload, path)
         state = payload["policy"]["nets"]
     spec = payload["spec"]
     try:

@@ -48,6 +48,7 @@ from agents.checkpoint import (
     POLICY_NAME,
     CheckpointError,
     check_spec,
+    load_policy,
     read_checkpoint,
     rng_state,
     save_checkpoint,
@@ -170,11 +171,12 @@ def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: i
           budget_min: float | None = None, resume: bool = False, device: str | None = None,
           env_factory: EnvFactory | None = None, progress: bool | None = None,
           allow_config_change: bool = False, backend: str = "local", ray_address: str | None = None,
-          overrides: Sequence[str] = ()) -> TrainResult:
+          overrides: Sequence[str] = (), init_from: Path | None = None) -> TrainResult:
     """Train (or, with `resume`, continue training) the AVs of `cfg` into `out_dir` (see module doc); `overrides`:
-    the command line's, recorded in the run's net.json."""
+    the command line's, recorded in the run's net.json; `init_from`: a new run starts from the networks of this
+    policy file or run (`agents.checkpoint.load_policy`) with a fresh optimizer, recorded in net.json."""
     run = _Run.open(cfg, Path(out_dir), workers, episodes, budget_min, resume, device, env_factory,
-                    allow_config_change, progress, Backend(backend, ray_address), overrides)
+                    allow_config_change, progress, Backend(backend, ray_address), overrides, init_from)
     try:
         with StopRequest() as stop:
             while not run.finished() and not stop.requested:
@@ -232,10 +234,15 @@ class _Run:
     @classmethod
     def open(cls, cfg: Config, out_dir: Path, workers: int | None, episodes: int | None, budget_min: float | None,
              resume: bool, device: str | None, env_factory: EnvFactory | None, allow_change: bool = False,
-             progress: bool | None = None, backend: Backend | None = None, overrides: Sequence[str] = ()) -> _Run:
+             progress: bool | None = None, backend: Backend | None = None, overrides: Sequence[str] = (),
+             init_from: Path | None = None) -> _Run:
         """Every check on the input and the run folder, before anything in the folder changes."""
         backend = backend or Backend()
         backend.check()
+        if init_from is not None and resume:
+            raise ConfigError(f"--init-from {init_from}: starts a new run; --resume continues one from its own "
+                              "checkpoint: give one of the two")
+        start = load_policy(init_from) if init_from is not None else None  # a bad file fails here, at once
         if cfg.demand.enabled and env_factory is None:
             raise ConfigError("demand.enabled: training runs on the episode scenario (AVs of fixed names, episodes of "
                               "seconds); evaluate the trained AVs under demand: cosim evaluate --run RUN --config "
@@ -278,8 +285,10 @@ class _Run:
             where = setting(cfg, overrides) if env_factory is None else None  # the merge env's: its net
             if where is not None and resume:
                 _check_net_unchanged(out_dir / NET_RECORD, where)
+            if where is not None and start is not None:
+                where["init_from"] = start[1]["path"]
             return cls(cfg, tc, out_dir, payload, env_factory or _default_env_factory(cfg), changes, progress,
-                       backend, lock, before, where)
+                       backend, lock, before, where, start)
         except BaseException:
             lock.release()
             raise
@@ -287,7 +296,8 @@ class _Run:
     def __init__(self, cfg: Config, tc: TrainConfig, out_dir: Path, payload: dict[str, Any] | None,
                  env_factory: EnvFactory, changes: dict[str, tuple[Any, Any]] | None = None,
                  progress: bool | None = None, backend: Backend | None = None, lock: FolderLock | None = None,
-                 before: FolderState | None = None, where: dict[str, Any] | None = None) -> None:
+                 before: FolderState | None = None, where: dict[str, Any] | None = None,
+                 start: tuple[dict[str, Any], dict[str, Any]] | None = None) -> None:
         self.cfg, self.tc, self.out_dir = cfg, tc, out_dir
         self.before = before or FolderState.capture(out_dir)
         self.failed = False  # a CosimError stopped the run (set by `train`)
@@ -321,6 +331,8 @@ class _Run:
             # Which one `auto` chose decides whether the run is reproducible bit for bit (README).
             log.info("forward passes in %s (train.precision: %s)",
                      "bfloat16" if self.policy.bf16 else "float32", tc.precision)
+            if start is not None:
+                self._start_from(*start)
             if payload is not None:
                 check_spec(payload, self.spec, self.ckpt_path)
                 self.policy.load_state_dict(payload["policy"])
@@ -358,6 +370,21 @@ class _Run:
         self.heartbeat = Heartbeat(tc.log_every_s)
         self.bar = tqdm(total=tc.episodes, initial=min(self.counters["episodes"], tc.episodes), unit="ep",
                         dynamic_ncols=True, disable=self.headless, desc="train")
+
+    def _start_from(self, nets: dict[str, Any], meta: dict[str, Any]) -> None:
+        """Every network of this run from `nets` (`load_policy`'s), which must fit the run's spec."""
+        path = meta["path"]
+        check_spec({"spec": meta["spec"]}, {k: self.spec[k] for k in ("obs_shape", "n_actions", "feature_dim",
+                                                                      "head_hidden")}, Path(path))
+        for name, net in zip(self.agents, self.policy.nets, strict=False):  # one per AV, or the shared one
+            source = next(iter(nets.values())) if meta["spec"]["shared_policy"] else nets.get(name)
+            if source is None:
+                raise CheckpointError(f"--init-from {path}: one network per AV, for {sorted(nets)}; none for {name}")
+            net.load_state_dict(source.state_dict())
+        for k in range(len(self.policy.acting)):  # per AV: the frozen acting copies start alike
+            self.policy.disseminate(k)
+        log.info("starting from the networks of %s (trained %d episodes there), with a fresh optimizer", path,
+                 int(meta["counters"].get("episodes", 0)))
 
     # -- the steps of `train` -----------------------------------------------------------------------------
     def progress(self) -> float:

@@ -124,3 +124,16 @@ def better(new: Mapping[str, float], best: Mapping[str, float] | None) -> bool:
     if new["crash_high"] != best["crash_high"]:
         return new["crash_high"] < best["crash_high"]
     return new["return"] > best["return"]
+
+
+# The criterion of a safe policy (issue 29), on one validation's figures: crash at most 2% with an upper bound at
+# most 5%, and where the AVs are altruistic (phi > 0) merge success within 5 points of a reference (the `courteous`
+# rule's on the same validation seeds).
+CRASH_MAX, CRASH_HIGH_MAX, MERGE_GAP = 2.0, 5.0, 5.0
+
+
+def meets_criterion(fig: Mapping[str, float], phi: float, merge_reference: float) -> bool:
+    """Whether a validation's figures (`summarize`) meet the criterion at SVO angle `phi` [rad]; `merge_reference`:
+    the merge success [%] the altruistic AVs must come within `MERGE_GAP` points of."""
+    safe = fig["crash"] <= CRASH_MAX and fig["crash_high"] <= CRASH_HIGH_MAX
+    return safe and (phi <= 0 or fig["merge"] >= merge_reference - MERGE_GAP)

@@ -204,6 +204,10 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--allow-config-change", action="store_true",
                         help="with --resume: continue although the config differs from the run's (the differences "
                              "are recorded in RUN/config_changes.yaml)")
+    parser.add_argument("--init-from", type=Path, default=None, metavar="POLICY",
+                        help="start a new run from these weights (a run folder, its policy.pt or best.pt, a shipped "
+                             "policy) with a fresh optimizer: fine-tuning, or going on from a committed float16 "
+                             "snapshot; not a resume (the run's counters start at 0)")
     parser.add_argument("--device", default=None, help="cpu | cuda | cuda:N (default: train.device)")
     _backend_arguments(parser)
 
@@ -220,7 +224,8 @@ def _train(args: argparse.Namespace) -> int:
     out = args.out or Path("runs") / Path(args.config).stem
     result = train(cfg, out, workers=args.workers, episodes=args.episodes, budget_min=args.budget_min,
                    resume=args.resume, device=args.device, allow_config_change=args.allow_config_change,
-                   backend=args.backend, ray_address=args.ray_address, overrides=overrides)
+                   backend=args.backend, ray_address=args.ray_address, overrides=overrides,
+                   init_from=args.init_from)
     log.info("trained %d episodes (%d updates, %d agent-samples, %.0f s) into %s", result.episodes, result.updates,
              result.samples, result.train_s, result.out_dir)
     return 130 if result.interrupted else 0

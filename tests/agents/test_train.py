@@ -299,3 +299,28 @@ def test_masked_actions_are_never_taken_in_training_and_the_setting_is_recorded(
     assert (crashes == 0) if action_mask else (crashes > 0)
     assert read_checkpoint(result.checkpoint)["train"]["action_mask"] is action_mask
     assert load_policy(run)[1]["train"]["action_mask"] is action_mask
+
+
+def test_init_from_starts_a_new_run_from_a_policys_weights_with_a_fresh_optimizer(tmp_path: Path) -> None:
+    from agents.checkpoint import export_policy
+
+    first = train(cfg_with(), tmp_path / "first", workers=1, episodes=4, env_factory=make_fake_env(n_agents=2),
+                  progress=False)
+    export_policy(first.checkpoint, tmp_path / "half.pt")  # a committed float16 snapshot
+    second = train(cfg_with(), tmp_path / "second", workers=1, episodes=1, env_factory=make_fake_env(n_agents=2),
+                   progress=False, init_from=tmp_path / "half.pt")
+    assert second.episodes == 1  # a new run: its own counters
+    # one episode of learning from the float16 weights: close to them, not a fresh initialisation
+    a = load_policy(tmp_path / "half.pt")[0]["av_0"].state_dict()
+    b = load_policy(second.checkpoint)[0]["av_0"].state_dict()
+    assert all(torch.allclose(a[k], b[k], atol=0.05) for k in a)
+    fresh = load_policy(train(cfg_with(seed=9), tmp_path / "fresh", workers=1, episodes=1,
+                              env_factory=make_fake_env(n_agents=2), progress=False).checkpoint)[0]["av_0"]
+    assert not all(torch.allclose(a[k], fresh.state_dict()[k], atol=0.05) for k in a)
+    assert read_checkpoint(second.checkpoint)["policy"]["optimizers"][0]["state"][0]["step"] == 1  # fresh Adam
+    with pytest.raises(ConfigError, match="--init-from .*: starts a new run; --resume continues one"):
+        train(cfg_with(), tmp_path / "second", resume=True, init_from=tmp_path / "half.pt", progress=False,
+              env_factory=make_fake_env(n_agents=2))
+    with pytest.raises(CheckpointError, match="incompatible feature_dim"):
+        train(cfg_with(feature_dim=16), tmp_path / "third", workers=1, episodes=1, progress=False,
+              env_factory=make_fake_env(n_agents=2), init_from=tmp_path / "half.pt")

@@ -10,7 +10,7 @@ import torch
 
 from agents.checkpoint import BEST_NAME, POLICY_NAME, TrainedPolicy, find_checkpoint, load_policy
 from agents.train import train
-from agents.validation import FIGURES, better, summarize, validation_seeds
+from agents.validation import FIGURES, better, meets_criterion, summarize, validation_seeds
 from cosim.config import EVAL_SEED_START, SEED_MAX, VALIDATION_SEED_START, load_config
 from cosim.evaluation.runner import evaluate
 from cosim.files import read_csv
@@ -40,6 +40,14 @@ def test_best_is_the_lowest_crash_upper_bound_then_the_highest_return() -> None:
     assert better({"crash_high": 8.0, "return": 1.0}, first)  # fewer crashes beat a higher return
     assert not better({"crash_high": 12.0, "return": 50.0}, first)
     assert better({"crash_high": 10.0, "return": 6.0}, first) and not better({"crash_high": 10.0, "return": 4.0}, first)
+
+
+def test_the_criterion_asks_safety_of_every_policy_and_merges_of_altruistic_ones() -> None:
+    safe = {"crash": 1.5, "crash_high": 4.3, "merge": 90.0}  # 3 crashes in 200 episodes
+    assert meets_criterion(safe, 0.0, 97.5)  # egoistic: the merge does not count
+    assert meets_criterion(safe, 0.7854, 95.0) and not meets_criterion(safe, 0.7854, 97.5)  # within 5 points?
+    assert not meets_criterion({**safe, "crash_high": 5.03}, 0.0, 0.0)  # 4 of 200: 2.0%, but the bound is 5.03%
+    assert not meets_criterion({**safe, "crash": 2.5}, 0.0, 0.0)
 
 
 def test_summary_gives_cosim_evaluates_intervals() -> None:

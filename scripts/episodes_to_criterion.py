@@ -1,0 +1,73 @@
+"""Episodes to a safe policy: for each training run, the first validation (`validation.csv`) at which the criterion
+of `agents.validation.meets_criterion` held, with its episodes and wall time.
+
+    python scripts/episodes_to_criterion.py runs/learner/* --out results/learner
+
+The merge reference of altruistic runs is the `courteous` rule's merge success on the same validation seeds,
+evaluated once into `OUT/courteous_validation/` (resumable). Writes `OUT/criterion.md` and `OUT/criterion.json`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import shlex
+import sys
+from pathlib import Path
+
+from agents.logs import VALIDATION_LOG
+from agents.validation import CRASH_HIGH_MAX, CRASH_MAX, MERGE_GAP, meets_criterion
+from cosim.config import VALIDATION_SEED_START, load_config
+from cosim.errors import CosimError, run_script
+from cosim.evaluation.runner import Baseline, evaluate
+from cosim.files import atomic_write_text, read_csv, write_json
+
+log = logging.getLogger("criterion")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", nargs="+", type=Path, help="training run folders")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--out", type=Path, default=Path("runs/criterion"))
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    runs = [r for r in args.runs if (r / VALIDATION_LOG).is_file()]
+    if not runs:
+        raise CosimError(f"no run among {[str(r) for r in args.runs]} has a {VALIDATION_LOG} (train.eval_every)")
+    first = load_config(runs[0] / "config.yaml")
+    reference = evaluate(first, Baseline("courteous"), args.out / "courteous_validation",
+                         episodes=first.train.eval_episodes, seed=VALIDATION_SEED_START, workers=args.workers,
+                         trajectories=0, plots=False)["metrics"]["merge success [%]"]["mean"]
+    rows = []
+    for run in runs:
+        cfg = load_config(run / "config.yaml")
+        phi = float(cfg.reward.phi)
+        validations = [{k: float(v) for k, v in r.items()} for r in read_csv(run / VALIDATION_LOG)]
+        met = next((v for v in validations if meets_criterion(v, phi, reference)), None)
+        last = validations[-1] if validations else {}
+        rows.append({"run": str(run), "phi": phi, "seed": cfg.train.seed, "validations": len(validations),
+                     "episodes_trained": last.get("episodes", 0), "met_at_episodes": met and met["episodes"],
+                     "met_at_train_s": met and met["train_s"], "best_crash": min((v["crash"] for v in validations),
+                                                                                default=math.nan)})
+    lines = ["# Episodes to the criterion", "",
+             f"`{shlex.join(['python', *sys.argv])}`", "",
+             f"Criterion: validation crash <= {CRASH_MAX:g}% with its upper bound <= {CRASH_HIGH_MAX:g}%; at phi > 0 "
+             f"also merge success >= courteous's on the validation seeds ({reference:.1f}%) - {MERGE_GAP:g} "
+             "points.", "",
+             "| run | phi | seed | episodes trained | criterion met at [episodes] | [h of training] | lowest crash "
+             "[%] |",
+             "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        met = "not yet" if r["met_at_episodes"] is None else f"{r['met_at_episodes']:,.0f}"
+        hours = "" if r["met_at_train_s"] is None else f"{r['met_at_train_s'] / 3600:.2f}"
+        lines.append(f"| {r['run']} | {r['phi']:.4f} | {r['seed']} | {r['episodes_trained']:,.0f} | {met} | {hours} | "
+                     f"{r['best_crash']:.1f} |")
+    atomic_write_text(args.out / "criterion.md", "\n".join(lines) + "\n")
+    write_json(args.out / "criterion.json", {"merge_reference": reference, "runs": rows})
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    run_script(main, log)

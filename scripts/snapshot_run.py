@@ -1,0 +1,49 @@
+"""A training run's progress, small enough for the repository: what a new machine needs to see where a run stands
+and to go on from it, without the resumable checkpoint (optimizer state, tens of MB).
+
+    python scripts/snapshot_run.py runs/learner/base_pi4_s1 --out results/learner/base_pi4_s1
+
+Copies `config.yaml`, `net.json`, `config_changes.yaml`, `updates.csv`, `validation.csv` and `episodes.csv`
+(gzipped), and writes `policy.pt` and `best.pt` with float16 weights (`agents.checkpoint.export_policy`). Where the
+run folder itself is gone, `cosim train --init-from OUT/policy.pt` is not a resume: it starts a new run from these
+weights with a fresh optimizer (say so beside any figure).
+"""
+
+from __future__ import annotations
+
+import argparse
+import gzip
+import logging
+import shutil
+from pathlib import Path
+
+from agents.checkpoint import BEST_NAME, POLICY_NAME, export_policy
+from cosim.errors import CosimError, run_script
+
+log = logging.getLogger("snapshot")
+
+COPIED = ("config.yaml", "net.json", "config_changes.yaml", "updates.csv", "validation.csv")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path, help="training run folder")
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    if not (args.run / POLICY_NAME).is_file():
+        raise CosimError(f"{args.run}: no {POLICY_NAME}; not a training run folder, or one without a checkpoint yet")
+    args.out.mkdir(parents=True, exist_ok=True)
+    for name in COPIED:
+        if (args.run / name).is_file():
+            shutil.copyfile(args.run / name, args.out / name)
+    with (args.run / "episodes.csv").open("rb") as src, gzip.open(args.out / "episodes.csv.gz", "wb") as dst:
+        shutil.copyfileobj(src, dst)
+    for name in (POLICY_NAME, BEST_NAME):
+        if (args.run / name).is_file():
+            export_policy(args.run / name, args.out / name)
+    log.info("wrote %s", args.out)
+
+
+if __name__ == "__main__":
+    run_script(main, log)
