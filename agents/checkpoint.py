@@ -281,6 +281,8 @@ def episode_actors(nets: Mapping[str, Any], spec: Mapping[str, Any], env: Parall
     seeded per episode, so that sampled actions do not depend on which worker plays it; `masked`: among the
     actions the env's `action_masks()` allow (the masks of its infos, read when the actions are asked for)."""
     agents = env.possible_agents
+    if not agents:  # demand without AVs (av_penetration 0): nothing to act for, as with a baseline
+        return lambda seed: lambda obs: {}
     shape = tuple(env.observation_space(agents[0]).shape)
     if tuple(spec["obs_shape"]) != shape:
         raise CheckpointError(

@@ -425,6 +425,10 @@ def _replay(args: argparse.Namespace) -> int:
     check_at_least("--delay", args.delay, 0)
     config = args.config or (args.run / "config.yaml" if args.run else "configs/default.yaml")
     cfg = load_config(config, config_overrides(args))
+    if cfg.demand.enabled:
+        raise ConfigError(f"{config}: demand.enabled: cosim replay films one episode of the episode scenario, not a "
+                          "demand run of minutes; replay with an episode config (e.g. --config configs/default.yaml), "
+                          "and see a demand run in its evaluation's flow figures (cosim evaluate --config ...)")
     seed = check_seed("--seed" if args.seed is not None else "evaluate.seed",
                       cfg.evaluate.seed if args.seed is None else args.seed)
     greedy = cfg.evaluate.greedy and not args.sample

@@ -278,6 +278,9 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
     out_dir = Path(out_dir).resolve()
     cfg = load_config(cfg, {**policy.overrides, "sim.outputs": True, "sim.output_dir": str(out_dir / "sumo")})
     if cfg.demand.enabled:  # a run of minutes: its figures are the flow's, not per-episode trajectories or videos
+        if videos:
+            log.warning("--videos %d: a demand run has no episode videos; its flow figures (speed heatmap, "
+                        "time-space diagram of the merge area) show it", videos)
         trajectories = videos = 0
     identity = policy.identity()
     where = setting(cfg, overrides)

@@ -48,6 +48,8 @@ def smoke_run(tmp_path_factory: pytest.TempPathFactory, cli_class: type) -> Path
     (["train", "--config", SMOKE, "--out", "run", "--set", "demand.enabled=true"],
      "demand.enabled: training runs on the episode scenario"),
     (["check-net", "no_such.net.xml"], "no_such.net.xml: not found"),
+    (["replay", "--config", str(ROOT / "configs" / "demand.yaml"), "--policy", "idle", "--out", "replay"],
+     "demand.enabled: cosim replay films one episode of the episode scenario"),
     (["check-net", str(ROOT / "sumo_net" / "dilemma" / "dilemma.net.xml"), "--config",
       str(ROOT / "configs" / "demand.yaml")],
      "demand.enabled: check-net judges the episode scenario"),

@@ -221,6 +221,17 @@ def test_checkpoint_policy_and_a_mismatched_one(tmp_path: Path) -> None:
     assert not (tmp_path / "ev_bad" / "evaluation.json").exists()  # a failed start claims no folder
 
 
+def test_a_trained_policy_under_demand_without_avs_runs_as_the_baselines_do(tmp_path: Path) -> None:
+    cfg = _cfg()
+    shape = (cfg.observation.frames, len(cfg.observation.channels), cfg.observation.height_px,
+             cfg.observation.width_px)
+    _tiny_checkpoint(tmp_path / "good.pt", shape)
+    demand = load_config(cfg, {"demand.enabled": True, "demand.warmup": 30.0, "demand.window": 60.0,
+                               "demand.av_penetration": 0.0})
+    summary = evaluate(demand, TrainedPolicy(str(tmp_path / "good.pt")), tmp_path / "ev", episodes=1, plots=False)
+    assert summary["episodes"] == 1 and summary["metrics"]["throughput, total [veh/h]"]["mean"] > 0
+
+
 def test_bad_input_is_a_clear_error(tmp_path: Path, two_lane_net: Path, caplog) -> None:
     run = tmp_path / "run"
     run.mkdir()
