@@ -312,7 +312,8 @@ def describe_checkpoint(path: Path) -> str:
     """Which state of a run `path` holds, in words: its episodes, and for a best.pt the validation that chose it."""
     meta = load_policy(path)[1]
     counters, row = meta["counters"], meta["validation"]
-    what = f"{path}, trained {int(counters['episodes']):,} episodes ({int(counters['updates']):,} updates)"
+    trained = ", ".join(f"{int(counters[k]):,} {k}" for k in ("episodes", "updates") if k in counters)
+    what = f"{path}, trained {trained}" if trained else str(path)
     if row is None:
         return what
     return (f"{what}, the best validation of its run ({int(row['episodes_validated'])} greedy episodes on the "
