@@ -48,7 +48,7 @@ def main() -> None:
         met = next((v for v in validations if meets_criterion(v, phi, reference)), None)
         last = validations[-1] if validations else {}
         rows.append({"run": str(run), "phi": phi, "seed": cfg.train.seed, "validations": len(validations),
-                     "episodes_trained": last.get("episodes", 0), "met_at_episodes": met and met["episodes"],
+                     "last_validated": last.get("episodes", 0), "met_at_episodes": met and met["episodes"],
                      "met_at_train_s": met and met["train_s"], "best_crash": min((v["crash"] for v in validations),
                                                                                 default=math.nan)})
     lines = ["# Episodes to the criterion", "",
@@ -56,13 +56,13 @@ def main() -> None:
              f"Criterion: validation crash <= {CRASH_MAX:g}% with its upper bound <= {CRASH_HIGH_MAX:g}%; at phi > 0 "
              f"also merge success >= courteous's on the validation seeds ({reference:.1f}%) - {MERGE_GAP:g} "
              "points.", "",
-             "| run | phi | seed | episodes trained | criterion met at [episodes] | [h of training] | lowest crash "
-             "[%] |",
+             "| run | phi | seed | last validation at [episodes] | criterion met at [episodes] | [h of training] | "
+             "lowest crash [%] |",
              "|---|---|---|---|---|---|---|"]
     for r in rows:
         met = "not yet" if r["met_at_episodes"] is None else f"{r['met_at_episodes']:,.0f}"
         hours = "" if r["met_at_train_s"] is None else f"{r['met_at_train_s'] / 3600:.2f}"
-        lines.append(f"| {r['run']} | {r['phi']:.4f} | {r['seed']} | {r['episodes_trained']:,.0f} | {met} | {hours} | "
+        lines.append(f"| {r['run']} | {r['phi']:.4f} | {r['seed']} | {r['last_validated']:,.0f} | {met} | {hours} | "
                      f"{r['best_crash']:.1f} |")
     atomic_write_text(args.out / "criterion.md", "\n".join(lines) + "\n")
     write_json(args.out / "criterion.json", {"merge_reference": reference, "runs": rows})
