@@ -107,12 +107,13 @@ class ActorCritic(nn.Module):
             state_dict[prefix + "features." + key[len(prefix):]] = state_dict.pop(key)
         super()._load_from_state_dict(state_dict, prefix, *args)
 
-    def _precision(self, obs: torch.Tensor) -> torch.autocast:
-        return torch.autocast(obs.device.type, dtype=torch.bfloat16, enabled=self.bf16)
+    def _precision(self, obs: torch.Tensor, float32: bool = False) -> torch.autocast:
+        return torch.autocast(obs.device.type, dtype=torch.bfloat16, enabled=self.bf16 and not float32)
 
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, F, C, H, W) -> logits (B, A), values (B,), float32."""
-        with self._precision(obs):
+    def forward(self, obs: torch.Tensor, float32: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, F, C, H, W) -> logits (B, A), values (B,), float32; `float32`: without bfloat16 autocast even where
+        the network trains with it (validation plays as evaluation does)."""
+        with self._precision(obs, float32):
             h = self.features(obs)
             logits, values = self.actor(h), self.critic(h).squeeze(-1)
         return logits.float(), values.float()

@@ -147,11 +147,7 @@ class MultiAgentPolicy:
         m = len(agents)
         actions, logp, values = torch.zeros(m, dtype=torch.int64), torch.zeros(m), torch.zeros(m)
         for net, sel in self._groups(agents, update):
-            bf16, net.bf16 = net.bf16, net.bf16 and not greedy
-            try:
-                logits, v = net(obs[sel].to(self.device))
-            finally:
-                net.bf16 = bf16
+            logits, v = net(obs[sel].to(self.device), float32=greedy)
             dist = torch.distributions.Categorical(
                 logits=logits if masks is None else masked_logits(logits, self._mask(masks[sel])))
             a = dist.probs.argmax(-1) if greedy else dist.sample()

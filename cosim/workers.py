@@ -62,7 +62,7 @@ log = logging.getLogger(__name__)
 START_ATTEMPTS = 3
 # Workers yield the CPU to the process that waits for them all (the learner acting for them, or updating): with more
 # workers than cores, a fair share would leave the learner a fraction of a core while everyone waits for its actions.
-WORKER_NICENESS = int(os.environ.get("COSIM_NICE", "10"))
+WORKER_NICENESS = 10
 # [s] Starting a worker (imports, SUMO's start) takes longer than a step, more so on a loaded machine: a short
 # step timeout must not turn every replacement into another timeout.
 START_TIMEOUT = 120.0

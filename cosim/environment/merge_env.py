@@ -95,7 +95,7 @@ def checked_action(agent: str, value: Any) -> int:
 
 def checked_actions(actions: Mapping[str, Any], live: Sequence[str], possible: Sequence[str]) -> dict[str, int]:
     """Every live agent's action as an int, or `ActionError`: for actions that are not a dict, a live agent without
-    one, an agent the env does not have (not in `possible`), or an action that is none (`checked_action`). The
+    one, an agent the env does not have (not in `possible`), or a value that is no action (`checked_action`). The
     actions of agents that are done are dropped unchecked: PettingZoo's AEC form steps them with None, SuperSuit's
     black death and a loop over the last observations hand them over too."""
     if not isinstance(actions, Mapping):
