@@ -35,8 +35,9 @@ def _same_tensors(a: Any, b: Any) -> bool:
 # -- one writer per folder -------------------------------------------------------------------------------
 @pytest.mark.slow  # over 10 s: CI runs it with the long tests
 def test_a_second_trainer_into_a_live_run_folder_is_refused_and_a_killed_one_leaves_it_free(cli: Any) -> None:
+    # No checkpoint before the kill: neither by the updates' count nor after a validation.
     first = cli.start("train", "--config", cli.SMOKE, "--out", "run",
-                      *cli.settings("train.episodes=400", "train.checkpoint_every=1000"))
+                      *cli.settings("train.episodes=400", "train.checkpoint_every=1000", "train.eval_every=0"))
     try:
         cli.wait_for(first, "update 1,")
         busy = f"run: in use by another cosim process (pid {first.pid}, cosim train); wait for it to finish"
