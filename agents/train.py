@@ -66,7 +66,7 @@ from cosim.errors import ConfigError, EpisodeError, NetError
 from cosim.files import FolderLock, FolderState, atomic_write_text, stale_temporaries
 from cosim.progress import Heartbeat
 from cosim.sumo.setting import setting
-from cosim.workers import EnvFactory
+from cosim.workers import WORKER_MIB, EnvFactory, check_memory
 
 log = logging.getLogger(__name__)
 
@@ -161,6 +161,20 @@ def _check_net_unchanged(record: Path, where: dict[str, Any]) -> None:
                     record, where["net"]["file"], before[:12], where["net"]["sha256"][:12])
 
 
+def _check_memory(cfg: Config, tc: TrainConfig, backend: Backend) -> None:
+    """A run whose batch and (local) worker processes need more memory than this machine has is refused before any
+    of it is allocated or started."""
+    obs = cfg.observation
+    values = obs.frames * len(obs.channels) * obs.height_px * obs.width_px
+    steps = max(1, round(cfg.sim.horizon / cfg.sim.decision_period))
+    batch = steps * tc.workers * cfg.scenario.n_avs * values * (1 if obs.dtype == "uint8" else 4)
+    parts = [(f"one update's batch ({steps:,} decision steps x {tc.workers} workers x {cfg.scenario.n_avs} AVs x "
+              f"{values:,} observation values)", batch)]
+    if backend.name == "local":
+        parts.append((f"{tc.workers} worker processes", tc.workers * WORKER_MIB << 20))
+    check_memory(parts, "lower sim.horizon, train.workers (--workers), scenario.n_avs or the observation's size")
+
+
 def _default_env_factory(cfg: Config) -> EnvFactory:
     from cosim.environment.merge_env import parallel_env  # the meeting point of agents/ and cosim/, through PettingZoo
 
@@ -252,6 +266,7 @@ class _Run:
                                    "budget_min": tc.budget_min if budget_min is None else budget_min,
                                    "device": device or tc.device})
         check_device(tc.device, "--device")
+        _check_memory(cfg, tc, backend)
         if tc.device.startswith("cuda") and not torch.cuda.is_available():
             raise ConfigError(f"--device {tc.device}: CUDA is not available on this machine")
         if out_dir.exists() and not out_dir.is_dir():

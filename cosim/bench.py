@@ -22,6 +22,7 @@ import numpy as np
 
 from cosim.config import OBSERVATION_PRESETS, Config, load_config
 from cosim.environment.merge_env import MergeEnv
+from cosim.files import atomic_copy
 from cosim.sumo.scenario import kind_of
 from cosim.sumo.snapshot import Snapshot
 
@@ -38,7 +39,7 @@ def _env_rate(env: MergeEnv, episodes: int, keep_routes: Path | None = None) -> 
     for ep in range(episodes):
         env.reset(seed=ep)
         if keep_routes is not None:
-            shutil.copy(env.route_file, keep_routes / f"episode_{ep}.rou.xml")
+            atomic_copy(env.route_file, keep_routes / f"episode_{ep}.rou.xml")
         lengths.append(0)
         t0 = time.perf_counter()
         while env.agents:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import logging
 import shlex
-import shutil
 import signal
 import sys
 from collections.abc import Callable, Sequence
@@ -25,14 +24,15 @@ from typing import Any
 from tqdm import tqdm
 from tqdm.contrib.logging import logging_redirect_tqdm
 
-from cosim.config import EVAL_SEED_START, check_seed
+from cosim.config import DEFAULT_CONFIG, EVAL_SEED_START, check_seed
 from cosim.errors import ConfigError, CosimError, check_at_least
+from cosim.files import atomic_copy
 
 log = logging.getLogger("cosim")
 
 
 # -- shared options ------------------------------------------------------------------------------------
-def add_config_arguments(parser: argparse.ArgumentParser, default: str | None = "configs/default.yaml",
+def add_config_arguments(parser: argparse.ArgumentParser, default: str | Path | None = DEFAULT_CONFIG,
                          net: bool = True) -> None:
     """The config options every env-using command shares: --config, --set and (with `net`) --net."""
     parser.add_argument("--config", default=default, help="experiment YAML (default: %(default)s)")
@@ -75,30 +75,40 @@ def _positive(args: argparse.Namespace, *names: str, least: int = 1) -> None:
 
 
 # -- build-net -----------------------------------------------------------------------------------------
+# build-net's geometry flags: (flag, type, unit, help); each is a MergeGeometry field of the same name.
+GEOMETRY_FLAGS: tuple[tuple[str, type, str, str], ...] = (
+    ("lanes", int, "", "through lanes of the highway"),
+    ("upstream-length", float, "[m] ", "before the merge"),
+    ("accel-length", float, "[m] ", "acceleration lane"),
+    ("ramp-length", float, "[m] ", "on-ramp"),
+    ("downstream-length", float, "[m] ", "after the merge"),
+    ("highway-speed", float, "[m/s] ", "highway speed limit"),
+    ("ramp-speed", float, "[m/s] ", "ramp speed limit"),
+    ("lane-width", float, "[m] ", "lane width"),
+    ("ramp-lanes", int, "", "lanes of the ramp (and acceleration lanes)"),
+    ("upstream-edges", int, "", "edges the approach is split into"),
+    ("ramp-edges", int, "", "edges the ramp is split into"),
+    ("downstream-edges", int, "", "edges the road after the merge is split into"),
+    ("curve-radius", float, "[m] ", "the highway bends left on this radius (0: straight)"),
+)
+
+
 def _build_net_arguments(p: argparse.ArgumentParser) -> None:
     from sumo_net.build import MergeGeometry
     from sumo_net.shapes import SHAPES
 
     d = MergeGeometry()
     p.add_argument("--shape", choices=sorted(SHAPES), default=None,
-                   help="one of the usual shapes (sumo_net/shapes.py) instead of the flags below")
-    p.add_argument("--lanes", type=int, default=d.lanes, help="through lanes of the highway")
-    p.add_argument("--upstream-length", type=float, default=d.upstream_length, help="[m] before the merge")
-    p.add_argument("--accel-length", type=float, default=d.accel_length, help="[m] acceleration lane")
-    p.add_argument("--ramp-length", type=float, default=d.ramp_length, help="[m] on-ramp")
-    p.add_argument("--downstream-length", type=float, default=d.downstream_length, help="[m] after the merge")
-    p.add_argument("--highway-speed", type=float, default=d.highway_speed, help="[m/s] highway speed limit")
-    p.add_argument("--ramp-speed", type=float, default=d.ramp_speed, help="[m/s] ramp speed limit")
-    p.add_argument("--lane-width", type=float, default=d.lane_width, help="[m]")
-    p.add_argument("--ramp-lanes", type=int, default=d.ramp_lanes, help="lanes of the ramp (and acceleration lanes)")
-    p.add_argument("--upstream-edges", type=int, default=d.upstream_edges, help="edges the approach is split into")
-    p.add_argument("--ramp-edges", type=int, default=d.ramp_edges, help="edges the ramp is split into")
-    p.add_argument("--downstream-edges", type=int, default=d.downstream_edges,
-                   help="edges the road after the merge is split into")
-    p.add_argument("--lane-drop", action="store_true",
+                   help="start from one of the usual shapes (sumo_net/shapes.py); the flags below, where given, "
+                        "replace its values")
+    # Defaults are None so that a flag given beside --shape is told from one left out; the built-in value
+    # (MergeGeometry's) stands in the help.
+    for flag, kind, unit, text in GEOMETRY_FLAGS:
+        key = flag.replace("-", "_")
+        p.add_argument(f"--{flag}", type=kind, default=None,
+                       help=f"{unit}{text} (default: the shape's, or {getattr(d, key):g})")
+    p.add_argument("--lane-drop", action="store_true", default=None,
                    help="the leftmost lane ends after the first edge past the merge (needs --downstream-edges 2)")
-    p.add_argument("--curve-radius", type=float, default=d.curve_radius,
-                   help="[m] the highway bends left on this radius (0: straight)")
     p.add_argument("--name", default=None, help="file stem of the outputs (default: merge, or the shape's name)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
 
@@ -108,15 +118,10 @@ def _build_net(args: argparse.Namespace) -> int:
     from sumo_net.shapes import SHAPES
 
     name = args.name or args.shape or "merge"
-    if args.shape is not None:
-        net_file = build_merge_net(args.out, name=name, **SHAPES[args.shape])
-    else:
-        net_file = build_merge_net(
-            args.out, lanes=args.lanes, upstream_length=args.upstream_length, accel_length=args.accel_length,
-            ramp_length=args.ramp_length, downstream_length=args.downstream_length,
-            highway_speed=args.highway_speed, ramp_speed=args.ramp_speed, lane_width=args.lane_width, name=name,
-            ramp_lanes=args.ramp_lanes, upstream_edges=args.upstream_edges, ramp_edges=args.ramp_edges,
-            downstream_edges=args.downstream_edges, lane_drop=args.lane_drop, curve_radius=args.curve_radius)
+    geometry = dict(SHAPES[args.shape]) if args.shape is not None else {}
+    keys = [flag.replace("-", "_") for flag, *_ in GEOMETRY_FLAGS] + ["lane_drop"]
+    geometry.update({key: getattr(args, key) for key in keys if getattr(args, key) is not None})
+    net_file = build_merge_net(args.out, name=name, **geometry)  # MergeGeometry checks every value
     log.info("wrote %s and %s", net_file, net_file.with_name(f"{name}.yaml"))
     return 0
 
@@ -156,7 +161,7 @@ def _run_scenario(args: argparse.Namespace) -> int:
             for ep in tqdm(range(args.episodes), desc=name, unit="ep", leave=False, disable=None):
                 env.reset(seed=first_seed + ep)
                 if args.save_routes is not None:
-                    shutil.copy(env.route_file, args.save_routes / f"episode_{env.episode_seed}.rou.xml")
+                    atomic_copy(env.route_file, args.save_routes / f"episode_{env.episode_seed}.rou.xml")
                 while env.agents:
                     env.step(policy(env))
                 s = env.last_summary
@@ -304,7 +309,7 @@ def _evaluate(args: argparse.Namespace) -> int:
 
     if args.run is not None and not (args.run / "config.yaml").is_file():
         raise CosimError(f"--run {args.run}: not a training run folder (no config.yaml; `cosim train` writes one)")
-    config = args.config or (args.run / "config.yaml" if args.run else "configs/default.yaml")
+    config = args.config or (args.run / "config.yaml" if args.run else DEFAULT_CONFIG)
     overrides = config_overrides(args)
     cfg = load_config(config, overrides)
     ec = cfg.evaluate
@@ -423,7 +428,7 @@ def _replay(args: argparse.Namespace) -> int:
         raise ConfigError("--gui: no display (DISPLAY is unset); sumo-gui needs one: on a machine without a screen "
                           "run xvfb-run -a cosim replay ... (Debian: apt-get install xvfb)")
     check_at_least("--delay", args.delay, 0)
-    config = args.config or (args.run / "config.yaml" if args.run else "configs/default.yaml")
+    config = args.config or (args.run / "config.yaml" if args.run else DEFAULT_CONFIG)
     cfg = load_config(config, config_overrides(args))
     if cfg.demand.enabled:
         raise ConfigError(f"{config}: demand.enabled: cosim replay films one episode of the episode scenario, not a "

@@ -71,9 +71,24 @@ SEED_MAX = 2**31 - 1
 MAX_OBSERVATION_VALUES = 2**24
 # The bundled 2-lane merge with a long approach (sumo_net/dilemma), the net of every config that names none.
 DEFAULT_NET = Path(__file__).resolve().parents[1] / "sumo_net" / "dilemma" / "dilemma.net.xml"
+# The experiment a command runs without --config, found from any working directory.
+DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
 # HVs that never yield to the merging vehicle and keep their lane: no cooperative lane changes or speed
 # adjustments, no lane changes for speed or to keep right (LC2013 / SL2015 parameters).
 NON_YIELDING: dict[str, float] = {"lcCooperative": 0.0, "lcSpeedGain": 0.0, "lcKeepRight": 0.0}
+# The lane-change parameters each model reads from a vType, as SUMO 1.28's parser and models take them
+# (SUMOVehicleParserHelper::parseLCParams; tests/cosim/sumo/test_lc_params.py checks them against the installed
+# SUMO). SUMO skips any other attribute without a word, so a misspelt name would change nothing silently.
+_LC2013_PARAMS = frozenset({
+    "lcStrategic", "lcCooperative", "lcSpeedGain", "lcKeepRight", "lcOpposite", "lcLookaheadLeft", "lcSpeedGainRight",
+    "lcMaxSpeedLatStanding", "lcMaxSpeedLatFactor", "lcMaxDistLatStanding", "lcAssertive", "lcSpeedGainLookahead",
+    "lcCooperativeRoundabout", "lcCooperativeSpeed", "lcOvertakeRight", "lcSigma", "lcKeepRightAcceptanceTime",
+    "lcOvertakeDeltaSpeedFactor", "lcStrategicLookahead", "lcSpeedGainRemainTime"})
+LC_PARAMS: dict[str, frozenset[str]] = {
+    "LC2013": _LC2013_PARAMS,
+    "SL2015": _LC2013_PARAMS | {"lcPushy", "lcPushyGap", "lcSublane", "lcImpatience", "lcTimeToImpatience",
+                                "lcAccelLat", "lcTurnAlignmentDistance", "lcLaneDiscipline"},
+}
 
 # Enumerated strings: the Literal is what a field accepts, the tuple what other modules list or look up.
 Channel = Literal["road", "avs", "hvs", "ego_merger"]
@@ -480,6 +495,19 @@ class DriverConfig(_Section):
 
     twins: ClassVar[tuple[Twins, ...]] = DRIVER_TWINS
 
+    @model_validator(mode="after")
+    def _known_lc_params(self) -> Self:
+        known = set().union(*LC_PARAMS.values())
+        for name in self.lc_params:
+            if name not in known:
+                raise _problem(f"{name!r} is no lane-change parameter of SUMO's; {self.lane_change_model} reads "
+                               f"{', '.join(sorted(LC_PARAMS[self.lane_change_model]))}", "lc_params")
+        return self
+
+    def ignored_lc_params(self) -> list[str]:
+        """The `lc_params` names another model reads but the chosen one ignores (SUMO says nothing of them)."""
+        return sorted(set(self.lc_params) - LC_PARAMS[self.lane_change_model])
+
 
 class AVConfig(_Section):
     accel: Number = Field(3.0, gt=0, description="applied by the env: SUMO's own limits are off for AVs [m/s^2]")
@@ -877,7 +905,7 @@ def _parse_overrides(overrides: Mapping[str, Any] | Sequence[str] | None) -> dic
             parsed[key.strip()] = yaml.load(raw, Loader=_ConfigLoader)
         except yaml.YAMLError as exc:
             raise ConfigError(f"override {key.strip()}: {raw!r} is not a YAML value: "
-                              f"{_yaml_problem(exc, lines=False)}") from None
+                              f"{yaml_problem(exc, lines=False)}") from None
     return parsed
 
 
@@ -893,7 +921,7 @@ def read_yaml(path: Path) -> Any:
     try:
         return yaml.load(text, Loader=_ConfigLoader)
     except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {path}: not valid YAML: {_yaml_problem(exc)}") from None
+        raise ConfigError(f"config file {path}: not valid YAML: {yaml_problem(exc)}") from None
 
 
 class _ConfigLoader(yaml.SafeLoader):
@@ -931,7 +959,7 @@ def _check_unique_keys(node: yaml.Node, where: str, done: set[int]) -> None:
         _check_unique_keys(child, dotted, done)
 
 
-def _yaml_problem(exc: yaml.YAMLError, lines: bool = True) -> str:
+def yaml_problem(exc: yaml.YAMLError, lines: bool = True) -> str:
     """PyYAML's message on one line (its own spans several, with a caret under the spot): where, what, and
     what it was reading."""
     if not isinstance(exc, yaml.MarkedYAMLError) or exc.problem_mark is None:

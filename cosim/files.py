@@ -3,7 +3,8 @@
 Contract: `atomic_path(path)` yields a temporary path beside `path` that replaces it only once the body
 succeeded (a reader sees the old file or the new one, never half of one), with the permissions any new file
 of the user gets (the umask's, not mkstemp's private 0600); a failed write (a full disk) removes the temporary file
-and raises an OSError naming `path`, not the temporary; `atomic_write_text` is its text shortcut;
+and raises an OSError naming `path`, not the temporary; `atomic_write_text` and `atomic_copy` are its shortcuts;
+`scratch_write_text` writes a file of a temporary folder, naming it on failure and leaving nothing partial;
 `write_json(path, data)` writes strict JSON atomically (NaN as null, `strict_json`).
 `stale_temporaries(folder, name)` lists what an interrupted atomic write of `name` left behind. `AppendCsv`
 appends rows flushed one by one, keeps an existing file's header (a row with a new key widens it; a missing
@@ -77,6 +78,24 @@ def _as_write_of(exc: OSError, tmp: str | None, path: Path) -> OSError:
 def atomic_write_text(path: Path, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+def atomic_copy(source: Path, path: Path) -> None:
+    """A copy of a small file `source` as `path`, written as `atomic_path` writes."""
+    # Read whole, not shutil.copyfile: its sendfile path blames a full disk on the source file.
+    data = Path(source).read_bytes()
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
+def scratch_write_text(path: Path, text: str) -> None:
+    """`path.write_text(text)` for a file of a run's own temporary folder (no fsync: it is read once, at once);
+    a failed write removes what it wrote and raises an OSError naming `path`."""
+    try:
+        path.write_text(text)
+    except OSError as exc:
+        path.unlink(missing_ok=True)
+        raise _as_write_of(exc, str(path), path) from None
 
 
 def strict_json(data: Any) -> Any:

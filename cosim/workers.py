@@ -56,6 +56,7 @@ from typing import Any
 import numpy as np
 
 from cosim.errors import ConfigError, NetError, SimulationError
+from cosim.files import scratch_write_text
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +67,9 @@ WORKER_NICENESS = 10
 # [s] Starting a worker (imports, SUMO's start) takes longer than a step, more so on a loaded machine: a short
 # step timeout must not turn every replacement into another timeout.
 START_TIMEOUT = 120.0
+# [MiB] One worker process besides its observation slots: Python, numpy, libsumo and its env (about 150 MB resident
+# each, measured on the default scenario).
+WORKER_MIB = 160
 
 EnvFactory = Callable[[], Any]  # () -> pettingzoo.ParallelEnv; must be picklable (e.g. functools.partial)
 
@@ -162,7 +166,18 @@ def _nest_mp(folder: Path) -> None:
     finally:
         tempfile.tempdir = before
     if pymp.parent != folder:
-        (folder / "pymp").write_text(f"{pymp}\n")
+        scratch_write_text(folder / "pymp", f"{pymp}\n")
+
+
+def check_memory(parts: Sequence[tuple[str, int]], fix: str) -> None:
+    """`ConfigError` where the `parts` ((what, bytes), e.g. a batch and the worker processes) together need more than
+    this machine's physical memory: refused before anything is allocated or started, each part named, then `fix`."""
+    need = sum(size for _, size in parts)
+    have = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    if need > have:
+        listed = " + ".join(f"{what}: {size / 2**30:,.1f} GiB" for what, size in parts)
+        raise ConfigError(f"{listed}; {need / 2**30:,.1f} GiB in all, more than this machine's {have / 2**30:,.1f} GiB "
+                          f"of memory: {fix}")
 
 
 # -- a worker's beats during a call -------------------------------------------------------------------------

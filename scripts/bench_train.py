@@ -41,7 +41,7 @@ from agents.rollout import BACKENDS
 from agents.train import TORCH_THREADS, train
 from cosim.bench import measure
 from cosim.config import OBSERVATION_PRESETS, Config, load_config
-from cosim.files import read_csv
+from cosim.files import atomic_write_text, read_csv
 
 log = logging.getLogger("bench_train")
 CORES = TORCH_THREADS  # torch's default: the cores it may use
@@ -187,7 +187,7 @@ def main() -> None:
         result["network"] = [bench_network(preset, 64, args.device, bf16)
                              for preset in ("default", "paper") for bf16 in (False, True)]
     if args.json:
-        args.json.write_text(json.dumps(result, indent=2) + "\n")
+        atomic_write_text(args.json, json.dumps(result, indent=2) + "\n")
 
 
 if __name__ == "__main__":

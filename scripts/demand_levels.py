@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from cosim.cli import add_config_arguments, config_overrides
-from cosim.config import EVAL_SEED_START, load_config
+from cosim.config import DEFAULT_CONFIG, EVAL_SEED_START, load_config
 from cosim.errors import run_script
 from cosim.evaluation.checknet import POLICIES
 from cosim.evaluation.runner import Baseline, evaluate
@@ -33,7 +33,7 @@ LEVELS = {"light": (0.35, 0.25), "near capacity": (0.75, 0.45), "over capacity":
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_config_arguments(parser, default="configs/demand.yaml")
+    add_config_arguments(parser, default=DEFAULT_CONFIG.with_name("demand.yaml"))
     parser.add_argument("--seeds", type=int, default=None, help="runs per (level, policy) (default: demand.seeds)")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", type=Path, default=Path("runs/demand_levels"))

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cosim.errors import NetError
+from cosim.files import atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -130,11 +131,11 @@ def build_merge_net(
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise NetError(f"merge net: cannot create output folder {out_dir}: {exc}") from None
-    (out_dir / f"{name}.nod.xml").write_text(_nodes_xml(geom))
-    (out_dir / f"{name}.edg.xml").write_text(_edges_xml(geom))
-    (out_dir / f"{name}.con.xml").write_text(_connections_xml(geom))
+    atomic_write_text(out_dir / f"{name}.nod.xml", _nodes_xml(geom))
+    atomic_write_text(out_dir / f"{name}.edg.xml", _edges_xml(geom))
+    atomic_write_text(out_dir / f"{name}.con.xml", _connections_xml(geom))
     net_file = run_netconvert(out_dir, name)
-    (out_dir / f"{name}.yaml").write_text(_description_yaml(geom))
+    atomic_write_text(out_dir / f"{name}.yaml", _description_yaml(geom))
     log.debug("built %s (%d+1 lanes, acceleration lane %.0f m)", net_file, lanes, accel_length)
     return net_file
 
@@ -165,6 +166,7 @@ def run_netconvert(out_dir: Path, name: str) -> Path:
     except (OSError, subprocess.TimeoutExpired) as exc:
         raise NetError(f"netconvert for {out_dir / name}: could not run ({exc})") from None
     if proc.returncode != 0 or not net_file.is_file():
+        net_file.unlink(missing_ok=True)  # what a failed run wrote (a full disk) is no net
         tail = "\n".join((proc.stderr or proc.stdout).strip().splitlines()[-10:])
         raise NetError(f"netconvert failed on {out_dir / name}.*.xml (exit {proc.returncode}):\n{tail}")
     if proc.stderr.strip():

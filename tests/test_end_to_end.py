@@ -12,7 +12,7 @@ import pytest
 
 from agents.checkpoint import read_checkpoint
 from cosim.cli import main
-from cosim.config import EVAL_SEED_START
+from cosim.config import EVAL_SEED_START, VALIDATION_SEED_START
 from cosim.files import read_csv
 
 pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
@@ -26,8 +26,8 @@ def readme_main_job() -> list[list[str]]:
     return [shlex.split(cmd)[1:] for cmd in re.split(r"\s*&&\s*", line) if cmd.strip().startswith("cosim ")]
 
 
-def test_readme_main_job_trains_then_evaluates_the_trained_run(tmp_path: Path,
-                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+def test_readme_main_job_trains_then_evaluates_the_trained_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                              caplog: pytest.LogCaptureFixture) -> None:
     train_args, eval_args = readme_main_job()
     assert train_args[:3] == ["train", "--config", "configs/smoke.yaml"] and eval_args[0] == "evaluate"
     run = tmp_path / "runs" / "smoke"
@@ -57,3 +57,10 @@ def test_readme_main_job_trains_then_evaluates_the_trained_run(tmp_path: Path,
     crashed = [r["crashed"] == "True" for r in evaluated]
     assert summary["episodes"] == 3
     assert summary["metrics"]["crash [%]"]["mean"] == pytest.approx(100 * sum(crashed) / 3)
+
+    # Its figures on the seeds best.pt was chosen on are said not to be held out; on evaluation's own they are.
+    assert "not held out" not in caplog.text
+    assert main(["evaluate", "--run", str(run), "--episodes", "1", "--seed", str(VALIDATION_SEED_START),
+                 "--no-plots", "--out", str(tmp_path / "on_validation")]) == 0
+    assert (f"evaluation seeds {VALIDATION_SEED_START}..{VALIDATION_SEED_START}: 1 from 2,000,000,000, the "
+            "validation seeds best.pt is chosen on; a trained policy's figures there are not held out") in caplog.text

@@ -39,6 +39,7 @@ from cosim.environment.merge_env import agent_masks, checked_actions
 from cosim.environment.reward import StepChange, svo_rewards, utility_terms, weighted_utility
 from cosim.environment.velocity_map import VelocityMapper, rasterize_road
 from cosim.errors import ConfigError
+from cosim.files import atomic_path
 from cosim.sumo.demand import plan_demand, resolve_demand, write_demand
 from cosim.sumo.flow_outputs import FlowOutputs, flow_output_args, flow_sites, read_flow_outputs
 from cosim.sumo.resolve import on_net
@@ -288,7 +289,8 @@ class DemandEnv(ParallelEnv):
         self.last_record = {**self.recorder.arrays(), "exit_lanes": np.asarray(len(self.sites.exit_lanes)),
                             "area_ids": np.asarray([a.did for a in self.sites.influence], dtype=str),
                             "area_lengths": np.asarray([a.length for a in self.sites.influence])}
-        np.savez_compressed(self.out_dir / "record.npz", **self.last_record)
+        with atomic_path(self.out_dir / "record.npz") as tmp:
+            np.savez_compressed(tmp, **self.last_record)
         self.last_summary = {"seed": self.episode_seed, "length": self.steps,
                              "avs_released": len(self.gone), "out_dir": str(self.out_dir)}
         for info in infos.values():

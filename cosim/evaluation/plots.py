@@ -38,7 +38,7 @@ from cosim.environment.render import COLOURS as TOP_VIEW_COLOURS
 from cosim.environment.render import top_view
 from cosim.environment.velocity_map import RoadRaster, rasterize_road
 from cosim.evaluation.store import load_trajectory, trajectory_files
-from cosim.files import column, read_csv
+from cosim.files import atomic_path, column, read_csv
 from cosim.sumo.net import load_net
 from cosim.sumo.resolve import resolve
 from cosim.sumo.roadnet import load_roadnet
@@ -61,9 +61,9 @@ CRASH_TARGET = 2.0  # [%] the crash rate a trained policy should get below (trai
 
 
 def save(fig: Figure, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(fig)
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as tmp:  # the temporary keeps the suffix that tells matplotlib the format
+        fig.savefig(tmp, dpi=110)
     return path
 
 

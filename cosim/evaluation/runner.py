@@ -47,7 +47,7 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
-from cosim.config import EVAL_SEED_START, Config, load_config
+from cosim.config import EVAL_SEED_START, VALIDATION_SEED_START, Config, load_config
 from cosim.environment.control import Action
 from cosim.environment.demand_env import DemandEnv
 from cosim.environment.merge_env import MergeEnv
@@ -58,7 +58,7 @@ from cosim.evaluation.store import config_hash, save_trajectory, scenario_hash, 
 from cosim.files import AppendCsv, FolderLock, FolderState, atomic_write_text, read_csv, write_json
 from cosim.progress import Heartbeat
 from cosim.sumo.setting import setting
-from cosim.workers import START_TIMEOUT, WorkerPool, keep_alive
+from cosim.workers import START_TIMEOUT, WORKER_MIB, WorkerPool, check_memory, keep_alive
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +71,20 @@ def check_counts(episodes: int, workers: int, trajectories: int, prefix: str = "
     for name, value, least in (("episodes", episodes, 1), ("workers", workers, 1), ("trajectories", trajectories, 0),
                                ("videos", videos, 0)):
         check_at_least(prefix + name, value, least)
+
+
+def _warn_unless_held_out(seeds: Sequence[int]) -> None:
+    """A trained policy's figures on seeds it trained on or was chosen on (best.pt, by validation) test nothing:
+    said, not refused (a user may want them)."""
+    trained = sum(s < EVAL_SEED_START for s in seeds)
+    validated = sum(s >= VALIDATION_SEED_START for s in seeds)
+    where = [text for n, text in ((trained, f"{trained} below {EVAL_SEED_START:,}, where training draws its episodes"),
+                                  (validated, f"{validated} from {VALIDATION_SEED_START:,}, the validation seeds "
+                                              "best.pt is chosen on")) if n]
+    if where:
+        log.warning("evaluation seeds %d..%d: %s; a trained policy's figures there are not held out (the evaluation "
+                    "seeds: %s to %s)", seeds[0], seeds[-1], " and ".join(where), f"{EVAL_SEED_START:,}",
+                    f"{VALIDATION_SEED_START - 1:,}")
 
 
 # -- policies ------------------------------------------------------------------------------------------
@@ -275,6 +289,8 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
     command line's `overrides` included; `report.md` words it). Resumes an interrupted evaluation in the same
     folder."""
     check_counts(episodes, workers, trajectories, videos=videos)
+    started = min(workers, episodes) if workers > 1 else 0
+    check_memory([(f"{started} worker processes", started * WORKER_MIB << 20)], "lower --workers")
     out_dir = Path(out_dir).resolve()
     cfg = load_config(cfg, {**policy.overrides, "sim.outputs": True, "sim.output_dir": str(out_dir / "sumo")})
     if cfg.demand.enabled:  # a run of minutes: its figures are the flow's, not per-episode trajectories or videos
@@ -290,6 +306,8 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
             "config_sha256": config_hash(cfg.to_dict()), "scenario_sha256": scenario_hash(cfg.to_dict()),
             "trained_updates": identity["trained_updates"], "model_sha256": identity["model_sha256"]}
     seeds = [seed + k for k in range(episodes)]
+    if identity["trained_updates"] is not None:
+        _warn_unless_held_out(seeds)
     job = Job(cfg.to_dict(), policy, str(out_dir), frozenset(seeds[:trajectories]), frozenset(seeds[:videos]),
               str(out_dir / "plots"))
     lock = FolderLock(out_dir, "cosim evaluate")

@@ -34,6 +34,7 @@ import numpy as np
 
 from cosim.config import Config
 from cosim.errors import ConfigError
+from cosim.files import scratch_write_text
 from cosim.sumo.net import Net
 from cosim.sumo.netdesc import NetDescription
 from cosim.sumo.scenario import MERGER_ID, av_id, av_vtype_xml, routes_xml, vtype_xml
@@ -188,4 +189,4 @@ def write_demand(arrivals: list[Arrival], cfg: Config, desc: NetDescription, pat
         parts.append(f'  <vehicle id="{a.vid}" type="{vtype}" route="{a.route}" depart="{a.depart:.2f}" '
                      f'departLane="{a.lane}" departSpeed="max"/>\n')
     parts.append("</routes>\n")
-    path.write_text("".join(parts))
+    scratch_write_text(path, "".join(parts))

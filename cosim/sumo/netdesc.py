@@ -25,6 +25,7 @@ from typing import Any
 
 import yaml
 
+from cosim.config import yaml_problem
 from cosim.errors import NetError
 from cosim.sumo.roadnet import RoadNet
 
@@ -66,8 +67,10 @@ def _from_yaml(roadnet: RoadNet, path: Path) -> NetDescription:
     where = f"net description {path}"
     try:
         data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise NetError(f"{where}: not readable YAML ({exc})") from None
+    except OSError as exc:
+        raise NetError(f"{where}: not readable ({exc.strerror or exc})") from None
+    except yaml.YAMLError as exc:
+        raise NetError(f"{where}: not valid YAML: {yaml_problem(exc)}") from None
     if not isinstance(data, dict):
         raise NetError(f"{where}: expected a mapping with keys {list(KEYS)}, e.g. {EXAMPLE_YAML}")
     for key in data:

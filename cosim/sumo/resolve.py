@@ -39,6 +39,11 @@ def on_net(cfg: Config) -> tuple[Net, Resolved]:
     resolved = resolve(cfg, net)
     for note in resolved.notes:
         log.warning("%s", note)
+    for key in ("hv", "merger"):
+        driver = getattr(cfg, key)
+        if ignored := driver.ignored_lc_params():
+            log.warning("%s.lc_params: %s ignores %s (SL2015 reads it; set %s.lane_change_model: SL2015 to use it)",
+                        key, driver.lane_change_model, ", ".join(ignored), key)
     return net, resolved
 
 

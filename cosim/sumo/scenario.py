@@ -31,6 +31,7 @@ import numpy as np
 
 from cosim.config import Config, DriverConfig
 from cosim.errors import ConfigError
+from cosim.files import scratch_write_text
 from cosim.sumo.net import Net
 from cosim.sumo.netdesc import NetDescription
 from cosim.sumo.resolve import resolve
@@ -325,4 +326,4 @@ def write_episode(plan: Plan, cfg: Config, desc: NetDescription, path: Path) -> 
             f' end="{cfg.sim.horizon}" {rate} departLane="{f.lane}" departSpeed="{speed}"/>\n'
         )
     parts.append("</routes>\n")
-    path.write_text("".join(parts))
+    scratch_write_text(path, "".join(parts))

@@ -10,8 +10,10 @@ from cosim.cli import main
 
 pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
-def test_build_net_then_run_scenario_on_it(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+def test_build_net_then_run_scenario_on_it(tmp_path: Path, caplog: pytest.LogCaptureFixture,
+                                          monkeypatch: pytest.MonkeyPatch) -> None:
     caplog.set_level("INFO")
+    monkeypatch.chdir(tmp_path)  # a user's own folder: the default config is found from anywhere
     out = tmp_path / "my_merge"
     assert main(["build-net", "--lanes", "2", "--accel-length", "80", "--out", str(out)]) == 0
     assert (out / "merge.net.xml").is_file() and (out / "merge.yaml").is_file()

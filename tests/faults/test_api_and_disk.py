@@ -122,6 +122,27 @@ def test_evaluation_into_a_full_disk_names_the_file_not_its_temporary(
     assert cli.no_leftovers()
 
 
+@pytest.mark.parametrize(("command", "destination"), [
+    (("build-net", "--out", "disk/net"), "disk/net/merge.nod.xml"),
+    (("run-scenario", "--config", SMOKE, "--episodes", "1", "--policy", "idle", "--save-routes", "disk/routes"),
+     "disk/routes/episode_"),
+    (("compare", "ev", "--out", "disk/report"), "disk/report/"),
+], ids=["build-net", "run-scenario", "compare"])
+def test_a_full_disk_is_one_line_naming_the_destination_and_leaves_no_partial_file(
+        command: tuple[str, ...], destination: str, cli: Any, tmpfs: Callable[[int], Path]) -> None:
+    if command[0] == "compare":
+        proc = cli.run("evaluate", "--config", SMOKE, "--policy", "idle", "--episodes", "1", "--trajectories", "0",
+                       "--no-plots", "--out", "ev")
+        assert proc.returncode == 0, proc.stderr
+    disk = tmpfs(1 << 20)
+    fill(disk)
+    proc = cli.run(*command)
+    cli.assert_clean_error(proc, destination)
+    assert next(line for line in proc.stderr.splitlines() if " ERROR " in line).endswith(": No space left on device")
+    assert [p.name for p in disk.rglob("*") if p.is_file()] == ["filler"]  # no empty file, no temporary
+    assert cli.no_leftovers()
+
+
 def test_sb3_evaluation_of_a_cosim_policy_file_is_one_line_before_anything_is_written(
         smoke_run: Path, cli: Any, tmp_path: Path) -> None:
     pytest.importorskip("stable_baselines3")

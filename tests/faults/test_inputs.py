@@ -80,6 +80,15 @@ CASES = {
                                  "sim.horizon: must be at least decision_period (5 s), got 1 s"),
     "horizon not whole decisions": (_run_scenario("--set", "sim.horizon=10.5"),
                                     "sim.horizon: must be a whole number of decision periods"),
+    # Sizes that multiply memory: a batch of 1e8 decision steps, a million worker processes (each its own SUMO).
+    "batch beyond memory": (_train("--config", SMOKE, "--set", "sim.horizon=100000000"),
+                            "one update's batch (100,000,000 decision steps x 2 workers x 2 AVs x 81,920 observation "
+                            "values): 30,517.6 GiB + 2 worker processes: 0.3 GiB; "),
+    "train workers beyond memory": (_train("--config", SMOKE, "--workers", "1000000"),
+                                    "+ 1000000 worker processes: 156,250.0 GiB; "),
+    "evaluate workers beyond memory": (_evaluate("--workers", "1000000", "--episodes", "1000000"),
+                                       "1000000 worker processes: 156,250.0 GiB; 156,250.0 GiB in all, more than this "
+                                       "machine's"),
 }
 DEMAND = str(Path(__file__).resolve().parents[2] / "configs" / "demand.yaml")
 SHORT_DEMAND = ("--set", "demand.warmup=30", "--set", "demand.window=60")

@@ -79,6 +79,29 @@ def test_main_builds_with_flags(tmp_path: Path) -> None:
     assert (out / "m1.yaml").read_text().startswith("# Net description for m1.net.xml")
 
 
+def test_flags_beside_a_shape_replace_its_values(tmp_path: Path) -> None:
+    assert main(["build-net", "--shape", "one_lane", "--lanes", "3", "--accel-length", "80",
+                 "--out", str(tmp_path)]) == 0
+    net = load_roadnet(tmp_path / "one_lane.net.xml")
+    assert net.num_lanes("hw_in") == 3  # the flag, not the shape's 1
+    assert net.edge_length("hw_merge") == pytest.approx(80, abs=2.0)
+
+
+@pytest.mark.parametrize(
+    ("argv", "key"),
+    [
+        (["--shape", "curved", "--lanes", "0"], "lanes must be an integer >= 1"),
+        (["--shape", "two_lane_ramp", "--accel-length", "-1"], "accel_length must be a positive number"),
+        (["--shape", "curved", "--curve-radius", "-100"], "curve_radius must be 0"),
+    ],
+)
+def test_flags_beside_a_shape_are_checked(tmp_path: Path, argv: list[str], key: str,
+                                          caplog: pytest.LogCaptureFixture) -> None:
+    assert main(["build-net", *argv, "--out", str(tmp_path)]) == 2
+    assert key in caplog.text
+    assert not list(tmp_path.iterdir())  # refused before anything is written
+
+
 @pytest.mark.parametrize(
     ("kwargs", "key"),
     [
