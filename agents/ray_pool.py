@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from cosim.errors import ConfigError, NetError, SimulationError
+from cosim.scratch import remove_leftovers, run_folder
 from cosim.workers import (
     START_ATTEMPTS,
     START_TIMEOUT,
@@ -43,8 +44,6 @@ from cosim.workers import (
     _EnvRunner,
     agreed_spec,
     failure_line,
-    remove_leftovers,
-    run_folder,
 )
 
 log = logging.getLogger(__name__)

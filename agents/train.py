@@ -7,7 +7,7 @@ updates, at the end, and on Ctrl-C or SIGTERM, which stop the run after the upda
 `updates.csv`, `episodes.csv` and TensorBoard files under `tb/`. `resume=True` continues the run in `out_dir`
 from its checkpoint: same parameters, optimizer and value-normaliser state, RNG states and counters; episode
 seeds follow from (seed, update, worker), so a resumed run continues the same sequence as an uninterrupted one.
-It returns a `TrainResult`. `add_arguments` / `run` are the argparse pair behind `cosim train`.
+It returns a `TrainResult`; `cosim train` (cosim/cli.py) calls it.
 
 The run folder has one writer (`cosim.files.FolderLock`, held from the first check of the folder to the end of
 the run): a second `train` into it is refused while the first lives. A stop in the middle of an update (a second
@@ -176,7 +176,7 @@ def _check_memory(cfg: Config, tc: TrainConfig, backend: Backend) -> None:
 
 
 def _default_env_factory(cfg: Config) -> EnvFactory:
-    from cosim.environment.merge_env import parallel_env  # the meeting point of agents/ and cosim/, through PettingZoo
+    from cosim.environment.factory import parallel_env  # the meeting point of agents/ and cosim/, through PettingZoo
 
     return functools.partial(parallel_env, cfg.to_dict())
 

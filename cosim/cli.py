@@ -141,7 +141,7 @@ def _run_scenario_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_scenario(args: argparse.Namespace) -> int:
-    from cosim.environment.merge_env import parallel_env
+    from cosim.environment.factory import parallel_env
     from cosim.environment.policies import POLICIES
 
     _positive(args, "episodes")
@@ -304,7 +304,7 @@ def _evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _evaluate(args: argparse.Namespace) -> int:
     from cosim.config import load_config
-    from cosim.evaluation.runner import Baseline, check_counts, evaluate
+    from cosim.evaluation.runner import Baseline, check_counts, evaluate, evaluation_label
     from cosim.evaluation.stats import format_table
 
     if args.run is not None and not (args.run / "config.yaml").is_file():
@@ -329,7 +329,7 @@ def _evaluate(args: argparse.Namespace) -> int:
                        workers=workers, trajectories=trajectories, confidence=ec.confidence, run_dir=args.run,
                        plots=not args.no_plots, videos=args.videos, overrides=overrides)
     log.info("wrote %s", Path(out) / "summary.json")
-    label = out.name if args.run is None else args.run.name
+    label = evaluation_label(policy, args.run)  # as its report.md calls it
     print(format_table({label: summary["metrics"]}, {label: summary["episodes"]}, confidence=ec.confidence))
     return 0
 
@@ -374,7 +374,7 @@ def _check_net(args: argparse.Namespace) -> int:
 
     from cosim.config import load_config
     from cosim.evaluation.checknet import check_net
-    from cosim.workers import run_folder
+    from cosim.scratch import run_folder
 
     _positive(args, "episodes", "workers")
     check_at_least("--max-episodes", args.max_episodes, args.episodes)

@@ -2,11 +2,13 @@
 
 Contract: `load_config(path_or_dict_or_Config, overrides)` returns a `Config` or raises `ConfigError` with one
 line per problem, each naming the dotted key (`scenario.n_avs`, `train.lr`) and what is allowed (the bounds,
-the choices, or for an unknown key the section's keys), prefixed with the file when loaded from one. A YAML
-file's `base:` chain and the overrides (`{"reward.phi": 0.785}` or `["reward.phi=0.785"]`, values read as YAML
-scalars) are merged into one raw dict that one `Config.model_validate` checks, so a value is judged the same
-wherever it came from. Unknown keys are errors; missing keys keep the defaults. Relative paths in `net` are
-resolved against the YAML file's folder (in an override or a dict: against the working directory). A file
+the choices, or for an unknown key the section's keys), prefixed with where the value came from: the
+`--set KEY=VALUE` that gave it (an override given as a string; one given in a dict is code's, named by its key
+alone), else the file when loaded from one. A YAML file's `base:` chain and the overrides
+(`{"reward.phi": 0.785}` or `["reward.phi=0.785"]`, values read as YAML scalars) are merged into one raw dict
+that one `Config.model_validate` checks, so a value is judged the same wherever it came from. Unknown keys are
+errors; missing keys keep the defaults. Relative paths in `net` are resolved against the YAML file's folder (in
+an override or a dict: against the working directory). A file
 must be UTF-8 YAML with no key given twice in a mapping (`read_yaml`, for every YAML file a user may have
 edited); a file or override that is not is one line naming it and the position. Each field declares its
 default, bounds and unit (`[unit]` ending its description) in one place, which `Config.model_json_schema()`
@@ -299,12 +301,15 @@ class _Section(BaseModel):
     @classmethod
     def model_validate(cls, obj: Any, **kwargs: Any) -> Self:
         """pydantic's `model_validate`, raising `ConfigError`; `context` may give `where` (the key path of `obj`,
-        prefixed to every key named) and `source` (the file it came from, prefixed to every line)."""
+        prefixed to every key named), `source` (the file it came from, prefixed to every line) and `overrides`
+        (dotted key -> the `--set KEY=VALUE` that gave it, or "" for one set in code: its lines name that instead
+        of the file)."""
         context = kwargs.get("context") or {}
         try:
             return super().model_validate(obj, **kwargs)
         except ValidationError as exc:
-            raise _error(exc, cls, context.get("where", ""), context.get("source")) from None
+            raise _error(exc, cls, context.get("where", ""), context.get("source"),
+                         context.get("overrides") or {}) from None
 
 
 class NetConfig(_Section):
@@ -832,6 +837,10 @@ def load_config(
         path = Path(config)
         data, source = _read_yaml(path), str(path)
     parsed = _parse_overrides(overrides)
+    # Where each overridden value came from, for the error lines: a string is the command line's --set, a
+    # mapping's value was set in code (no input of the user's to name, and not the file's).
+    given = ({key: "" for key in parsed} if isinstance(overrides, Mapping)
+             else {item.partition("=")[0].strip(): f"--set {item.strip()}" for item in overrides or ()})
     for section in {key.partition(".")[0] for key in parsed}:  # overrides replace the files' twins (TWINS)
         if isinstance(data.get(section), dict):
             _clear_twins(section, data[section], {k.partition(".")[2]: v for k, v in parsed.items()
@@ -839,7 +848,7 @@ def load_config(
     for key, value in parsed.items():
         _set_dotted(data, key, value)
     data["source"] = source
-    return Config.model_validate(data, context={"source": source})
+    return Config.model_validate(data, context={"source": source, "overrides": given})
 
 
 def _plain(value: Any) -> Any:
@@ -999,8 +1008,9 @@ _BOUNDS = {"greater_than": (">", "gt"), "greater_than_equal": (">=", "ge"),
            "less_than": ("<", "lt"), "less_than_equal": ("<=", "le")}
 
 
-def _error(exc: ValidationError, root: type[BaseModel], where: str, source: str | None = None) -> ConfigError:
-    """One line per problem, naming the dotted key below `where` (and the file `source`, if any)."""
+def _error(exc: ValidationError, root: type[BaseModel], where: str, source: str | None = None,
+           overrides: Mapping[str, str] = MappingProxyType({})) -> ConfigError:
+    """One line per problem, naming the dotted key below `where` and where its value came from (`_origin`)."""
     lines = []
     for err in exc.errors(include_url=False):
         loc, kind, ctx = list(err["loc"]), err["type"], err.get("ctx") or {}
@@ -1024,9 +1034,23 @@ def _error(exc: ValidationError, root: type[BaseModel], where: str, source: str 
             text = f"expected {_EXPECTED[kind]}, got {got}"
         else:
             text = f"{err['msg']}, got {got}"
-        line = f"{prefix}{_dotted(where, loc) or 'config'}: {text}"
-        lines.append(f"{source}: {line}" if source else line)
+        key = _dotted(where, loc)
+        lines.append(_origin(key, f"{prefix}{key or 'config'}: {text}", text, source, overrides))
     return ConfigError("\n".join(dict.fromkeys(lines)))
+
+
+def _origin(key: str, line: str, text: str, source: str | None, overrides: Mapping[str, str]) -> str:
+    """The problem `line` (`text` about `key`) prefixed with where the value came from: the `--set` that gave the
+    key (its problem alone follows: `--set sim.horizon=-1: must be > 0, got -1`) or a section above it; nothing
+    for a value set in code; else the file `source`, with the `--set`s inside a section whose own rule is broken
+    (the values judged together came from both)."""
+    owner = next((k for k in overrides if key == k or key.startswith((f"{k}.", f"{k}["))), None)
+    if owner is not None:
+        label = overrides[owner]
+        return line if not label else f"{label}: {text}" if key == owner else f"{label}: {line}"
+    inside = [label for k, label in overrides.items() if label and key and k.startswith(f"{key}.")]
+    origin = " with ".join(filter(None, [source, ", ".join(inside)]))
+    return f"{origin}: {line}" if origin else line
 
 
 def _dotted(where: str, loc: Sequence[str | int]) -> str:

@@ -8,16 +8,25 @@ may penalise. The session then ramps the actual speed toward the target within t
 `action_mask(lanes, through, speed_targets, cfg)` says, by the same rules, which actions would change something:
 (N, 5) int8, 1 = can be taken; a lane change `decide` would flag `invalid` is 0, accelerate is 0 at the top target
 speed `av.max_speed` and decelerate at a target of 0; idle is always 1. The env reports it in each agent's infos.
+`agent_masks(snap, zone, agents, targets, av)` gives each agent's mask in a snapshot.
+`checked_actions(actions, live, possible)` is what both envs' `step` accepts: every live agent's action as an int,
+or `ActionError` (a `CosimError` and a `ValueError`) naming the agent and the allowed actions.
 """
 
 from __future__ import annotations
 
+import reprlib
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import Any
 
 import numpy as np
 
 from cosim.config import AVConfig
+from cosim.environment.episode import MergeZone
+from cosim.errors import CosimError
+from cosim.sumo.snapshot import Snapshot
 
 
 class Action(IntEnum):
@@ -70,3 +79,63 @@ def action_mask(lanes: np.ndarray, usable: np.ndarray, speed_targets: np.ndarray
     mask[:, Action.ACCELERATE] = speed_targets < av.max_speed
     mask[:, Action.DECELERATE] = speed_targets > 0.0
     return mask
+
+
+# -- what a step() accepts as actions --------------------------------------------------------------
+ALLOWED_ACTIONS = f"an integer in 0..{N_ACTIONS - 1} ({', '.join(f'{int(a)} {a.name}' for a in Action)})"
+
+
+class ActionError(CosimError, ValueError):
+    """`MergeEnv.step` got something that is not an action of a live agent (a ValueError, as gymnasium's
+    callers expect of a bad action)."""
+
+
+def checked_action(agent: str, value: Any) -> int:
+    """`value` as an action index, or `ActionError` naming `agent` and the allowed actions. Python ints (and
+    `Action` members) and numpy integers, 0-d arrays included (what SB3 and SuperSuit hand over), are
+    actions; floats, strings, bools, None and arrays of a shape are not, as in gymnasium's `Discrete`."""
+    if type(value) is int and 0 <= value < N_ACTIONS:  # the trainer's and the evaluation's own actions
+        return value
+    if isinstance(value, np.ndarray):
+        integral = value.shape == () and value.dtype.kind in "iu"
+    else:  # a bool is an int to Python, not an action
+        integral = isinstance(value, int | np.integer) and not isinstance(value, bool)
+    if integral and 0 <= int(value) < N_ACTIONS:
+        return int(value)
+    raise ActionError(f"step(): agent {agent!r}: action {reprlib.repr(value)} ({type(value).__name__}) is not "
+                      f"allowed; expected {ALLOWED_ACTIONS}")
+
+
+def checked_actions(actions: Mapping[str, Any], live: Sequence[str], possible: Sequence[str]) -> dict[str, int]:
+    """Every live agent's action as an int, or `ActionError`: for actions that are not a dict, a live agent without
+    one, an agent the env does not have (not in `possible`), or a value that is no action (`checked_action`). The
+    actions of agents that are done are dropped unchecked: PettingZoo's AEC form steps them with None, SuperSuit's
+    black death and a loop over the last observations hand them over too."""
+    if not isinstance(actions, Mapping):
+        raise ActionError(f"step(): expected a dict of agent -> action, got {type(actions).__name__}")
+    missing = [a for a in live if a not in actions]
+    if missing:
+        raise ActionError(f"step(): no action for live agents {missing}; each takes {ALLOWED_ACTIONS}")
+    if len(actions) > len(live):
+        known = set(possible)
+        unknown = [a for a in actions if a not in known]
+        if unknown:
+            shown = list(possible) if len(possible) <= 8 else f"{possible[0]} .. {possible[-1]}"
+            raise ActionError(f"step(): unknown agent {unknown[0]!r}; this env's agents are {shown} (live now: "
+                              f"{list(live)}), each taking {ALLOWED_ACTIONS}")
+    return {a: checked_action(a, actions[a]) for a in live}
+
+
+def agent_masks(snap: Snapshot, zone: MergeZone, agents: Sequence[str], targets: np.ndarray,
+                av: AVConfig) -> dict[str, np.ndarray]:
+    """Agent -> its action mask in `snap` (`cosim.environment.control.action_mask`), `targets` (len(agents),) their
+    target speeds [m/s]; an agent not on the road (none live is) may only idle."""
+    rows = snap.rows_of(agents)
+    present = rows >= 0
+    safe = np.maximum(rows, 0)
+    # Edge -1 indexes the zone's extra row, which has no usable lane.
+    edge = np.where(present, snap.edge[safe] if len(snap) else -1, -1)
+    lane = np.where(present, snap.lane[safe] if len(snap) else 0, 0)
+    mask = action_mask(lane, zone.through[edge], np.asarray(targets, dtype=np.float64), av)
+    mask[~present] = np.eye(N_ACTIONS, dtype=np.int8)[Action.IDLE]
+    return dict(zip(agents, mask, strict=True))

@@ -21,98 +21,48 @@ infos carry `action_mask` as the episode env's do (`action_masks()`).
 
 from __future__ import annotations
 
-import shutil
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import gymnasium
 import numpy as np
-from pettingzoo import ParallelEnv
 
-from cosim.config import SEED_MAX, Config, check_seed
-from cosim.environment.control import N_ACTIONS, decide
-from cosim.environment.episode import MergeZone
+from cosim.config import Config
+from cosim.environment.base import Step, SumoEnv
 from cosim.environment.flow_record import FlowRecorder
-from cosim.environment.merge_env import agent_masks, checked_actions
 from cosim.environment.reward import StepChange, svo_rewards, utility_terms, weighted_utility
 from cosim.environment.velocity_map import VelocityMapper, rasterize_road
 from cosim.errors import ConfigError
 from cosim.files import atomic_path
 from cosim.sumo.demand import plan_demand, resolve_demand, write_demand
 from cosim.sumo.flow_outputs import FlowOutputs, flow_output_args, flow_sites, read_flow_outputs
-from cosim.sumo.resolve import on_net
 from cosim.sumo.scenario import av_id, kind_of
-from cosim.sumo.session import Gui, SumoSession
+from cosim.sumo.session import Gui
 from cosim.sumo.snapshot import KIND_AV, KIND_MERGER, Snapshot
-from cosim.workers import run_folder
 
 
-class DemandEnv(ParallelEnv):
+class DemandEnv(SumoEnv):
     metadata = {"name": "cosim_merge_demand_v0", "render_modes": [], "is_parallelizable": True}
+    ROUTE_FILE = "demand.rou.xml"
 
     def __init__(self, config: Config, render_mode: str | None = None, gui: Gui | None = None) -> None:
-        if render_mode is not None:
-            raise ValueError(f"render_mode: demand mode renders nothing, got {render_mode!r}")
-        self.render_mode = render_mode
-        self.net, resolved = on_net(config)
-        self.cfg = config = resolved.config
-        self.resolution_notes = resolved.notes
+        super().__init__(config, render_mode, gui)
+        config = self.cfg
         if isinstance(config.reward.phi, tuple):
             raise ConfigError("reward.phi: one angle for every AV in demand mode (AVs come and go), got a list")
         self.demand = resolve_demand(config, self.net)
-        self.road, self.chainage = self.net.road, self.net.chainage
-        self.zone = MergeZone.from_net(self.net)
         self.sites = flow_sites(self.net, config.demand.influence_area)
         self.possible_agents = [av_id(i) for i in range(self.demand.max_avs)]
-        self.agents: list[str] = []
-        self.mapper = VelocityMapper(config.observation, rasterize_road(self.road.lane_shapes()),
-                                     max(self.demand.slots, 1))
-        self._obs_space = gymnasium.spaces.Box(low=0, high=self.mapper.high, shape=self.mapper.shape,
-                                               dtype=self.mapper.dtype)
-        self._act_space = gymnasium.spaces.Discrete(N_ACTIONS)
+        self._spaces(VelocityMapper(config.observation, rasterize_road(self.road.lane_shapes()),
+                                    max(self.demand.slots, 1)))
         self.max_steps = max(1, round(self.demand.horizon / config.sim.decision_period))
-        self.session = SumoSession(Path(config.net.file), config.sim.step_length, self.road.index_of, kind_of,
-                                   config.sim.sumo_args, config.sim.collision_mingap_factor,
-                                   drive_avs=config.sim.av_driver == "env", gui=gui, shield=config.av.shield)
         self._phi = float(config.reward.phi)
-        self._next_seed = config.sim.seed
-        self._tmp: Path | None = None
-        self._snap: Snapshot | None = None
-        self._closed = False
         self.last_outputs: FlowOutputs | None = None  # SUMO's outputs of the last finished run
         self.last_record: dict[str, np.ndarray] | None = None  # ... and its record
-        self.last_summary: dict[str, Any] | None = None
         self.sumo_outputs: dict[int, Any] = {}  # the episode envs' per-episode outputs: none here
 
-    # -- PettingZoo API -----------------------------------------------------------------------------
-    def observation_space(self, agent: str) -> gymnasium.spaces.Box:
-        return self._obs_space
-
-    def action_space(self, agent: str) -> gymnasium.spaces.Discrete:
-        return self._act_space
-
-    @property
-    def snapshot(self) -> Snapshot:
-        if self._snap is None:
-            raise RuntimeError("no snapshot before reset()")
-        return self._snap
-
-    @property
-    def route_file(self) -> Path:
-        if self._tmp is None:
-            raise RuntimeError("no route file before reset()")
-        return self._tmp / "demand.rou.xml"
-
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
-        if self._closed:
-            raise RuntimeError("reset() after close(): this env is closed; make a new one")
-        seed = check_seed("seed", self._next_seed if seed is None else seed)
-        self._next_seed = (seed + 1) % (SEED_MAX + 1)  # past SUMO's last seed, the sequence starts again at 0
-        self.episode_seed = seed
-        if self._tmp is None:
-            self._tmp = Path(tempfile.mkdtemp(prefix="env_", dir=run_folder()))
+        seed = self._begin_reset(seed)
         write_demand(plan_demand(self.cfg, self.net, seed), self.cfg, self.net.desc, self.route_file)
         root = Path(self.cfg.sim.output_dir) if self.cfg.sim.output_dir else self._tmp / "outputs"
         self.out_dir = root / f"run_{seed}"
@@ -139,15 +89,24 @@ class DemandEnv(ParallelEnv):
         self._add_masks(infos)
         return {a: self._obs(a) for a in self.agents}, infos
 
-    def step(self, actions: Mapping[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
-        if self._snap is None:
-            raise RuntimeError("step() after close(): this env is closed; make a new one" if self._closed
-                               else "step() before reset()")
-        acting = list(self.agents)
-        actions = checked_actions(actions, acting, self.possible_agents)
-        prev = self._snap
-        snap, rewards, crashed = self._decision(prev, acting, actions)
-        obs, rew, term, trunc, infos = {}, {}, {}, {}, {}
+    # -- step hooks (the template: cosim.environment.base) ------------------------------------------
+    def _observe(self, acting: list[str], actions: Mapping[str, int]) -> Snapshot:
+        self.steps += 1
+        snap = self.session.snapshot()
+        self.recorder.observe(snap, self.session.pending())
+        # A ramp vehicle's merge counts once, on the step it reaches a through lane, whether or not an AV was there.
+        through = self.zone.on_through_lane(snap.edge, snap.lane)
+        self._merged_now = (snap.kind == KIND_MERGER) & through & ~snap.crashed & ~np.isin(snap.ids, list(self._merged))
+        self._merged.update(snap.ids[i] for i in np.flatnonzero(self._merged_now))
+        crashed = [snap.ids[i] for i in np.flatnonzero(snap.crashed)]
+        if crashed:  # off the road after the step: the run goes on (counted by the recorder)
+            self.session.remove(sorted(crashed))
+        self._snap = snap
+        return snap
+
+    def _end(self, snap: Snapshot, acting: list[str], rewards: dict[str, float], extra: dict[str, dict]) -> Step:
+        crashed = {snap.ids[i] for i in np.flatnonzero(snap.crashed)}
+        rew, term, trunc, infos = {}, {}, {}, {}
         at_end = self.steps >= self.max_steps
         for a in acting:
             r = snap.row_of(a)
@@ -172,46 +131,12 @@ class DemandEnv(ParallelEnv):
         self._add_masks(infos)
         return obs, rew, term, trunc, infos
 
-    def action_masks(self) -> dict[str, np.ndarray]:
-        """Each live agent's action mask after the last reset/step, as in its infos (`MergeEnv.action_masks`)."""
-        return agent_masks(self.snapshot, self.zone, self.agents, [self._target[a] for a in self.agents], self.cfg.av)
-
     def _add_masks(self, infos: dict[str, dict]) -> None:
         for a, mask in self.action_masks().items():
             infos.setdefault(a, {})["action_mask"] = mask
 
-    # -- the decision -------------------------------------------------------------------------------
-    def _decision(self, prev: Snapshot, acting: list[str], actions: Mapping[str, int]
-                  ) -> tuple[Snapshot, dict[str, float], set[str]]:
-        """Apply the actions, simulate one decision period, read the new state; (snapshot, rewards, crashed)."""
-        av = self.cfg.av
-        rows = prev.rows_of(acting)
-        present = [a for a, r in zip(acting, rows, strict=True) if r >= 0]
-        targets: dict[str, float] = {}
-        lane_changed = dict.fromkeys(acting, False)
-        invalid = dict.fromkeys(acting, False)
-        if present and self.session.drive_avs:
-            r = prev.rows_of(present)
-            d = decide(np.array([actions[a] for a in present]), prev.lane[r], self.zone.through[prev.edge[r]],
-                       np.array([self._target.get(a, prev.speed[k]) for a, k in zip(present, r, strict=True)]), av)
-            for a, speed, change, bad in zip(present, d.target_speed, d.lane_change, d.invalid, strict=True):
-                self._target[a] = targets[a] = float(speed)
-                if change:
-                    self.session.change_lane(a, int(change))
-                lane_changed[a], invalid[a] = bool(change), bool(bad)
-        self.session.advance(self.cfg.steps_per_decision, targets, av.accel, av.decel, av.max_speed)
-        self.steps += 1
-        snap = self.session.snapshot()
-        self.recorder.observe(snap, self.session.pending())
-        rewards = self._rewards(prev, snap, acting, lane_changed, invalid)
-        crashed = {snap.ids[i] for i in np.flatnonzero(snap.crashed)}
-        if crashed:  # off the road after the step: the run goes on (counted by the recorder)
-            self.session.remove(sorted(crashed))
-        self._snap = snap
-        return snap, rewards, crashed
-
-    def _rewards(self, prev: Snapshot, snap: Snapshot, acting: list[str], lane_changed: dict[str, bool],
-                 invalid: dict[str, bool]) -> dict[str, float]:
+    def _reward(self, prev: Snapshot, snap: Snapshot, acting: list[str], lane_changed: dict[str, bool],
+                invalid: dict[str, bool]) -> tuple[dict[str, float], dict[str, dict]]:
         before = prev.rows_of(snap.ids)
         seen = before >= 0
         prev_d, prev_v = np.zeros(len(snap)), snap.speed.copy()
@@ -221,12 +146,9 @@ class DemandEnv(ParallelEnv):
             r = snap.row_of(a)
             if r >= 0:
                 v_lane[r], v_invalid[r] = lane_changed[a], invalid[a]
-        through = self.zone.on_through_lane(snap.edge, snap.lane)
-        merged_now = (snap.kind == KIND_MERGER) & through & ~snap.crashed & ~np.isin(snap.ids, list(self._merged))
-        self._merged.update(snap.ids[i] for i in np.flatnonzero(merged_now))
         av = self.cfg.av
         raw = utility_terms(StepChange(snap.distance - prev_d, snap.speed - prev_v, v_lane, v_invalid, snap.crashed,
-                                       merged_now, av.max_speed, av.accel, self.cfg.sim.decision_period))
+                                       self._merged_now, av.max_speed, av.accel, self.cfg.sim.decision_period))
         utility = sum(weighted_utility(raw, self.cfg.reward).values())
         rows = snap.rows_of(acting)
         observed = np.zeros((len(acting), len(snap)), bool)
@@ -237,7 +159,7 @@ class DemandEnv(ParallelEnv):
             full[slots[have]] = rows[have]
             observed[have] = self.mapper.observed(snap, full)[slots[have]]
         reward, _, _ = svo_rewards(utility, observed, rows, -1, np.full(len(acting), self._phi))
-        return {a: float(r) for a, r in zip(acting, reward, strict=True)}
+        return {a: float(r) for a, r in zip(acting, reward, strict=True)}, {}
 
     # -- agents and their observation slots ---------------------------------------------------------
     def _admit(self, snap: Snapshot) -> list[str]:
@@ -272,7 +194,8 @@ class DemandEnv(ParallelEnv):
                            trunc: dict | None = None) -> None:
         """No AV present: simulate on until one enters (it becomes an agent) or the horizon."""
         while not self.agents and self.steps < self.max_steps:
-            snap, _, _ = self._decision(self._snap, [], {})
+            self._simulate([])
+            snap = self._observe([], {})
             if self.steps < self.max_steps:
                 self.agents = self._admit(snap)
             self._update_maps(snap)
@@ -295,19 +218,3 @@ class DemandEnv(ParallelEnv):
                              "avs_released": len(self.gone), "out_dir": str(self.out_dir)}
         for info in infos.values():
             info["episode"] = self.last_summary
-
-    def flush_outputs(self) -> None:
-        """The episode envs' hook: a demand run's outputs are complete at its horizon already."""
-
-    def close(self) -> None:
-        self.session.close()
-        if self._tmp is not None:
-            shutil.rmtree(self._tmp, ignore_errors=True)
-            self._tmp = None
-        self._snap = None
-        self._closed = True
-
-    def __del__(self) -> None:
-        session = getattr(self, "session", None)
-        if session is not None:
-            session.close()

@@ -5,7 +5,8 @@ Contract: `FlowRecorder(zone, chainage, window, bins)` is fed each decision's sn
 (`observe(snap, pending)`, by vehicle id). It keeps: per decision the backlog on the ramp and on the highway and
 the AVs present; per ramp vehicle when it first reached the merge edge (its front past the acceleration lane's
 start: on the acceleration lane, or straight onto a through lane) and when it first reached a through lane
-(merged); every collision (each vehicle of it is counted once); a speed heatmap, the mean speed in
+(merged); every collision (each vehicle of it is counted once) and where it happened (the chainage of its
+collider, else of its victim; NaN off the highway); a speed heatmap, the mean speed in
 cells of `bins` = (time [s], chainage [m]) over the whole run; and, within the window, the merge area's points
 (time, chainage, speed, class) for a time-space diagram. `arrays()` gives all of it as numpy arrays (what
 `record.npz` holds, a few hundred kB for a 12-minute run).
@@ -36,7 +37,7 @@ class FlowRecorder:
         self.avs_present: list[int] = []
         self.reached: dict[str, float] = {}  # ramp vehicle -> when its front first passed the acceleration lane's start
         self.merged: dict[str, float] = {}  # ramp vehicle -> when it first reached a through lane [s]
-        self.collisions: list[tuple[float, str, str]] = []  # (time, collider, victim)
+        self.collisions: list[tuple[float, str, str, float]] = []  # (time, collider, victim, chainage [m])
         self.crashed: set[str] = set()
         self._points: list[np.ndarray] = []  # (K, 4) float32: time, chainage, speed, class
 
@@ -46,10 +47,12 @@ class FlowRecorder:
         ramp = sum(1 for v in pending if kind_of(v) == KIND_MERGER)
         self.backlog.append((ramp, len(pending) - ramp))
         self.avs_present.append(int(np.count_nonzero(snap.kind == KIND_AV)))
-        for c in snap.collisions:
-            self.collisions.append((c.time, c.collider, c.victim))
-            self.crashed.update((c.collider, c.victim))
         s = self.chainage.of(snap)  # (V,) NaN off the axis
+        for c in snap.collisions:
+            # The collider's place; its victim's where the collider has left the net since (or is off the axis).
+            where = [s[r] for r in snap.rows_of([c.collider, c.victim]) if r >= 0 and np.isfinite(s[r])]
+            self.collisions.append((c.time, c.collider, c.victim, float(where[0]) if where else np.nan))
+            self.crashed.update((c.collider, c.victim))
         through = self.zone.on_through_lane(snap.edge, snap.lane)
         accel = (snap.edge == self.zone.merge_edge) & np.isin(snap.lane, list(self.zone.accel_lanes))
         for r in np.flatnonzero(snap.kind == KIND_MERGER):
@@ -81,6 +84,7 @@ class FlowRecorder:
             "ramp_merged": np.asarray([self.merged.get(v, np.nan) for v in merge_ids]),
             "crashed": np.asarray(sorted(self.crashed), dtype=str),
             "collision_times": np.asarray([c[0] for c in self.collisions]),
+            "collision_chainage": np.asarray([c[3] for c in self.collisions], dtype=np.float64),
             "heatmap": heat.astype(np.float32), "heat_bins": np.asarray(self.bins),
             "points": np.concatenate(self._points) if self._points else np.zeros((0, 4), np.float32),
             "window": np.asarray(self.window), "merge_start": np.asarray(self.chainage.merge_start),

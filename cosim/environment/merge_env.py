@@ -20,11 +20,11 @@ merge failed. Observations are read-only views valid until the next step. Each l
 `action_mask` at reset and every step (`action_masks()`: `cosim.environment.control.action_mask` of its lane, edge
 and target speed); the env takes any action whether or not anyone reads it.
 
-`step` is a template of small hooks: act -> simulate -> snapshot -> observe -> reward -> end. It takes an action for
-every live agent (`env.agents`): an unknown agent, a missing action or one that is not an integer in range (`Action`;
-numpy integers are fine) is an `ActionError` (a `CosimError` and a `ValueError`) naming the agent and the allowed
-actions; actions of agents already done are ignored. A closed env stays closed: `reset` and `step` after `close`
-raise a RuntimeError that says so.
+`step` is the template of `cosim.environment.base.SumoEnv` (act -> simulate -> observe -> reward -> end). It takes an
+action for every live agent (`env.agents`): an unknown agent, a missing action or one that is not an integer in range
+(`Action`; numpy integers are fine) is an `ActionError` (`cosim.environment.control.checked_actions`) naming the agent
+and the allowed actions; actions of agents already done are ignored. A closed env stays closed: `reset` and `step`
+after `close` raise a RuntimeError that says so.
 
 With `sim.outputs`, or for one episode with `reset(options={"outputs": True})` (training's validation episodes),
 each episode writes SUMO's tripinfo and induction-loop files into its own folder
@@ -41,159 +41,58 @@ from __future__ import annotations
 
 import copy
 import logging
-import reprlib
-import shutil
-import tempfile
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import gymnasium
 import numpy as np
-from pettingzoo import AECEnv, ParallelEnv
-from pettingzoo.utils.conversions import parallel_to_aec
 
-from cosim.config import SEED_MAX, AVConfig, Config, check_seed, load_config
-from cosim.environment.control import N_ACTIONS, Action, action_mask, decide
-from cosim.environment.episode import EndCheck, MergeZone, episode_end, merge_status
+from cosim.config import Config
+from cosim.environment.base import Step, SumoEnv
+from cosim.environment.episode import EndCheck, episode_end, merge_status
 from cosim.environment.reward import StepChange, svo_rewards, utility_terms, weighted_utility
 from cosim.environment.tracker import EpisodeTracker
 from cosim.environment.velocity_map import VelocityMapper, rasterize_road
-from cosim.errors import CosimError, SimulationError
+from cosim.errors import SimulationError
 from cosim.sumo.outputs import SumoOutputs, detector_site, episode_folder, episode_output_args, read_episode_outputs
-from cosim.sumo.resolve import on_net
-from cosim.sumo.scenario import av_id, kind_of, plan_episode, write_episode
-from cosim.sumo.session import Gui, SumoSession
+from cosim.sumo.scenario import av_id, plan_episode, write_episode
+from cosim.sumo.session import Gui
 from cosim.sumo.snapshot import KIND_AV, KIND_MERGER, Snapshot
-from cosim.workers import run_folder
 
 log = logging.getLogger(__name__)
 
-ALLOWED_ACTIONS = f"an integer in 0..{N_ACTIONS - 1} ({', '.join(f'{int(a)} {a.name}' for a in Action)})"
 
-
-class ActionError(CosimError, ValueError):
-    """`MergeEnv.step` got something that is not an action of a live agent (a ValueError, as gymnasium's
-    callers expect of a bad action)."""
-
-
-def checked_action(agent: str, value: Any) -> int:
-    """`value` as an action index, or `ActionError` naming `agent` and the allowed actions. Python ints (and
-    `Action` members) and numpy integers, 0-d arrays included (what SB3 and SuperSuit hand over), are
-    actions; floats, strings, bools, None and arrays of a shape are not, as in gymnasium's `Discrete`."""
-    if type(value) is int and 0 <= value < N_ACTIONS:  # the trainer's and the evaluation's own actions
-        return value
-    if isinstance(value, np.ndarray):
-        integral = value.shape == () and value.dtype.kind in "iu"
-    else:  # a bool is an int to Python, not an action
-        integral = isinstance(value, int | np.integer) and not isinstance(value, bool)
-    if integral and 0 <= int(value) < N_ACTIONS:
-        return int(value)
-    raise ActionError(f"step(): agent {agent!r}: action {reprlib.repr(value)} ({type(value).__name__}) is not "
-                      f"allowed; expected {ALLOWED_ACTIONS}")
-
-
-def checked_actions(actions: Mapping[str, Any], live: Sequence[str], possible: Sequence[str]) -> dict[str, int]:
-    """Every live agent's action as an int, or `ActionError`: for actions that are not a dict, a live agent without
-    one, an agent the env does not have (not in `possible`), or a value that is no action (`checked_action`). The
-    actions of agents that are done are dropped unchecked: PettingZoo's AEC form steps them with None, SuperSuit's
-    black death and a loop over the last observations hand them over too."""
-    if not isinstance(actions, Mapping):
-        raise ActionError(f"step(): expected a dict of agent -> action, got {type(actions).__name__}")
-    missing = [a for a in live if a not in actions]
-    if missing:
-        raise ActionError(f"step(): no action for live agents {missing}; each takes {ALLOWED_ACTIONS}")
-    if len(actions) > len(live):
-        known = set(possible)
-        unknown = [a for a in actions if a not in known]
-        if unknown:
-            shown = list(possible) if len(possible) <= 8 else f"{possible[0]} .. {possible[-1]}"
-            raise ActionError(f"step(): unknown agent {unknown[0]!r}; this env's agents are {shown} (live now: "
-                              f"{list(live)}), each taking {ALLOWED_ACTIONS}")
-    return {a: checked_action(a, actions[a]) for a in live}
-
-
-def agent_masks(snap: Snapshot, zone: MergeZone, agents: Sequence[str], targets: np.ndarray,
-                av: AVConfig) -> dict[str, np.ndarray]:
-    """Agent -> its action mask in `snap` (`cosim.environment.control.action_mask`), `targets` (len(agents),) their
-    target speeds [m/s]; an agent not on the road (none live is) may only idle."""
-    rows = snap.rows_of(agents)
-    present = rows >= 0
-    safe = np.maximum(rows, 0)
-    # Edge -1 indexes the zone's extra row, which has no usable lane.
-    edge = np.where(present, snap.edge[safe] if len(snap) else -1, -1)
-    lane = np.where(present, snap.lane[safe] if len(snap) else 0, 0)
-    mask = action_mask(lane, zone.through[edge], np.asarray(targets, dtype=np.float64), av)
-    mask[~present] = np.eye(N_ACTIONS, dtype=np.int8)[Action.IDLE]
-    return dict(zip(agents, mask, strict=True))
-
-
-class MergeEnv(ParallelEnv):
+class MergeEnv(SumoEnv):
     metadata = {"name": "cosim_merge_v0", "render_modes": ["rgb_array"], "is_parallelizable": True,
                 "render_fps": 10}
+    ROUTE_FILE = "episode.rou.xml"
 
     def __init__(self, config: Config, render_mode: str | None = None, gui: Gui | None = None) -> None:
-        """`gui`: run sumo-gui over TraCI instead of libsumo, for people to watch (`cosim replay --gui`)."""
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode: expected None or 'rgb_array', got {render_mode!r}")
-        self.render_mode = render_mode
-        # Everything below reads the config resolved on this net: net-relative keys in absolute units.
-        self.net, resolved = on_net(config)
-        self.cfg = config = resolved.config
-        self.resolution_notes = resolved.notes
+        super().__init__(config, render_mode, gui)
+        config = self.cfg
         plan_episode(config, self.net, config.sim.seed)  # a placement this net makes impossible fails here, at once
-        self.road, self.chainage = self.net.road, self.net.chainage
-        self.zone = MergeZone.from_net(self.net)
         self.tracker = self.new_tracker()  # this episode's metrics, renewed at reset
         self.possible_agents = [av_id(i) for i in range(config.scenario.n_avs)]
-        self.agents: list[str] = []
         self.road_raster = rasterize_road(self.road.lane_shapes())
-        self.mapper = VelocityMapper(config.observation, self.road_raster, len(self.possible_agents))
-        self._obs_space = gymnasium.spaces.Box(low=0, high=self.mapper.high, shape=self.mapper.shape,
-                                               dtype=self.mapper.dtype)
-        self._act_space = gymnasium.spaces.Discrete(N_ACTIONS)
+        self._spaces(VelocityMapper(config.observation, self.road_raster, len(self.possible_agents)))
+        self._index = {a: i for i, a in enumerate(self.possible_agents)}
         self._phis = np.asarray(config.phis(), dtype=np.float64)
         self.max_steps = max(1, round(config.sim.horizon / config.sim.decision_period))
-        self._next_seed = config.sim.seed
-        self._tmp: Path | None = None  # this env's temporary folder, made at the first reset, removed at close
-        self.session = SumoSession(Path(config.net.file), config.sim.step_length, self.road.index_of, kind_of,
-                                   config.sim.sumo_args, config.sim.collision_mingap_factor,
-                                   drive_avs=config.sim.av_driver == "env", gui=gui, shield=config.av.shield)
         self.detectors = detector_site(self.net, config.sim.detector_offset)
         self.sumo_outputs: dict[int, SumoOutputs] = {}  # episode seed -> its parsed SUMO outputs
         # [m] odometer of every vehicle at the end of the flow window (flush_outputs), to check SUMO's against
         self.window_distance: dict[str, float] = {}
         self._pending_outputs: tuple[int, Path] | None = None  # written, not yet complete
-        self._snap: Snapshot | None = None
         self._window_end = 0.0  # [s] simulation time of the horizon in the running episode
         # Collisions of these classes end the episode (the paper's rule).
         self._stop_on = frozenset({KIND_AV, KIND_MERGER}) if config.sim.on_collision == "end" else frozenset()
-        self._closed = False  # close() released the process's SUMO slot: this env cannot run again
-        self.last_summary: dict[str, Any] | None = None  # the summary of the episode that ended last
 
     def new_tracker(self, record: bool = False) -> EpisodeTracker:
         return EpisodeTracker(self.zone, self.chainage, record=record, cut_in_window=self.cfg.sim.cut_in_window,
                               hard_braking=self.cfg.safety.hard_braking, period=self.cfg.sim.decision_period)
 
-    # -- PettingZoo API -----------------------------------------------------------------------------
-    # One space object for all agents, as PettingZoo asks (no functools.cache: it would keep the env alive).
-    def observation_space(self, agent: str) -> gymnasium.spaces.Box:
-        return self._obs_space
-
-    def action_space(self, agent: str) -> gymnasium.spaces.Discrete:
-        return self._act_space
-
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
-        if self._closed:  # restarting would take a SUMO slot that another env of this process may hold now
-            raise RuntimeError("reset() after close(): this env is closed; make a new one (cosim.parallel_env)")
-        # A plain int (numpy's would reach the summary, which json refuses) in SUMO's range, or `SeedError`
-        # (a ValueError) naming `seed`; None takes the next seed (sim.seed first).
-        seed = check_seed("seed", self._next_seed if seed is None else seed)
-        self._next_seed = (seed + 1) % (SEED_MAX + 1)  # past SUMO's last seed, the sequence starts again at 0
-        self.episode_seed = seed
-        if self._tmp is None:
-            self._tmp = Path(tempfile.mkdtemp(prefix="env_", dir=run_folder()))  # named after its owner: a kill -9
-            # leaves nothing that the next run does not remove
+        seed = self._begin_reset(seed)
         write_episode(plan_episode(self.cfg, self.net, seed), self.cfg, self.net.desc, self.route_file)
         end_time = None if self._snap is None else self._snap.time
         extra: list[str] = []
@@ -211,7 +110,8 @@ class MergeEnv(ParallelEnv):
         self.last_summary = None
         snap = self.session.snapshot()
         rows = snap.rows_of(self.possible_agents)
-        self._target = np.where(rows >= 0, snap.speed[np.maximum(rows, 0)], 0.0)
+        self._target = {a: float(snap.speed[r]) if r >= 0 else 0.0 for a, r in zip(self.possible_agents, rows,
+                                                                                       strict=True)}
         self.tracker = self.new_tracker()
         self.tracker.observe(snap)
         self._window_end = snap.time + self.max_steps * self.cfg.steps_per_decision * self.cfg.sim.step_length
@@ -222,109 +122,58 @@ class MergeEnv(ParallelEnv):
         masks = self._masks(snap, self.agents)
         return obs, {a: {"seed": seed, "action_mask": masks[a]} for a in self.agents}
 
-    def step(self, actions: Mapping[str, int]) -> tuple[dict, dict, dict, dict, dict]:
-        if self._snap is None:
-            raise RuntimeError("step() after close(): this env is closed; make a new one (cosim.parallel_env)"
-                               if self._closed else "step() before reset()")
-        acting = list(self.agents)
-        actions = self._checked_actions(actions)
-        prev = self._snap
-        idx = np.array([self.possible_agents.index(a) for a in acting], dtype=np.int64)
-        lane_changed, invalid = self._act(prev, acting, idx, actions)
-        self._simulate(acting, idx)
+    # -- step hooks (the template: cosim.environment.base) ------------------------------------------
+    def _observe(self, acting: list[str], actions: Mapping[str, int]) -> Snapshot:
         snap = self.session.snapshot()
-        rows = snap.rows_of(self.possible_agents)
+        self._rows = rows = snap.rows_of(self.possible_agents)
         self.mapper.update(snap, rows)
-        status = merge_status(snap, self.zone, self.cfg.sim.stuck_speed, self.cfg.sim.stuck_distance)
+        self._status = status = merge_status(snap, self.zone, self.cfg.sim.stuck_speed, self.cfg.sim.stuck_distance)
         merged_before = self.tracker.merged_at is not None
         self.tracker.observe(snap, {a: actions[a] for a in acting} if self.session.drive_avs else None, status)
-        merged = self.tracker.merged_at is not None
-        rewards, terms, ego_u, social_u = self._rewards(prev, snap, rows, lane_changed, invalid, status.row,
-                                                        merged and not merged_before)
+        self._merged_now = self.tracker.merged_at is not None and not merged_before
+        self._snap = snap
+        return snap
+
+    def _reward(self, prev: Snapshot, snap: Snapshot, acting: list[str], lane_changed: dict[str, bool],
+                invalid: dict[str, bool]) -> tuple[dict[str, float], dict[str, dict]]:
+        n = len(self.possible_agents)
+        changed_v, invalid_v = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+        for a in acting:
+            changed_v[self._index[a]], invalid_v[self._index[a]] = lane_changed[a], invalid[a]
+        reward, terms, ego_u, social_u = self._utilities(prev, snap, self._rows, changed_v, invalid_v,
+                                                         self._status.row, self._merged_now)
+        extra = {a: {"reward_terms": {k: float(v[i]) for k, v in terms.items()}, "ego_utility": float(ego_u[i]),
+                     "social_utility": float(social_u[i]), "invalid_action": bool(invalid_v[i])}
+                 for a, i in ((a, self._index[a]) for a in acting)}
+        return {a: float(reward[self._index[a]]) for a in acting}, extra
+
+    def _end(self, snap: Snapshot, acting: list[str], rewards: dict[str, float], extra: dict[str, dict]) -> Step:
+        status, merged = self._status, self.tracker.merged_at is not None
         ended_by = episode_end(EndCheck(snap, status, merged, self.tracker.steps, self.max_steps, self._stop_on,
                                         self.cfg.sim.end_on_stuck))
         cut = ended_by is not None
         masks = self._masks(snap, acting)
-        obs, rew, term, trunc, infos = {}, {}, {}, {}, {}
+        obs, term, trunc, infos = {}, {}, {}, {}
         for a in acting:
-            i = self.possible_agents.index(a)
-            r = rows[i]
+            i = self._index[a]
+            r = self._rows[i]
             gone = r < 0 or bool(snap.crashed[r])
             term[a] = gone
             trunc[a] = cut and not gone
             obs[a] = self.mapper.observation(i)
-            rew[a] = float(rewards[i])
-            infos[a] = {"reward_terms": {k: float(v[i]) for k, v in terms.items()},
-                        "ego_utility": float(ego_u[i]), "social_utility": float(social_u[i]),
-                        "invalid_action": bool(invalid[i]), "merged": merged, "action_mask": masks[a]}
+            infos[a] = {**extra[a], "merged": merged, "action_mask": masks[a]}
         self.agents = [a for a in acting if not (term[a] or trunc[a])]
         if self.cfg.sim.on_collision == "remove" and snap.crashed.any():
             self.session.remove([v for v, c in zip(snap.ids, snap.crashed, strict=True) if c])
-        self._snap = snap
         if not self.agents:
             # ended_by None: nothing cut the episode, every AV's own one ended (crashed or left the net).
             summary = self.episode_summary(snap, stuck=status.stuck, ended_by=ended_by or "agents_done")
             self.last_summary = summary
             for a in acting:
                 infos[a]["episode"] = summary
-        return obs, rew, term, trunc, infos
+        return obs, rewards, term, trunc, infos
 
-    @property
-    def route_file(self) -> Path:
-        """The SUMO route file of the episode (vehicles, vTypes, routes), rewritten at every reset."""
-        if self._tmp is None:
-            raise RuntimeError("no route file before reset()")
-        return self._tmp / "episode.rou.xml"
-
-    @property
-    def snapshot(self) -> Snapshot:
-        """The state of every vehicle after the last reset/step (for baselines, metrics and tools)."""
-        if self._snap is None:
-            raise RuntimeError("no snapshot before reset()")
-        return self._snap
-
-    def action_masks(self) -> dict[str, np.ndarray]:
-        """Each live agent's action mask after the last reset/step, as in its infos["action_mask"]: (N_ACTIONS,)
-        int8, 1 where the action would change something (`cosim.environment.control.action_mask`)."""
-        return self._masks(self.snapshot, self.agents)
-
-    def _masks(self, snap: Snapshot, agents: list[str]) -> dict[str, np.ndarray]:
-        idx = [self.possible_agents.index(a) for a in agents]
-        return agent_masks(snap, self.zone, agents, self._target[idx], self.cfg.av)
-
-    def _checked_actions(self, actions: Mapping[str, Any]) -> dict[str, int]:
-        return checked_actions(actions, self.agents, self.possible_agents)
-
-    # -- step hooks ---------------------------------------------------------------------------------
-    def _act(self, prev: Snapshot, acting: list[str], idx: np.ndarray,
-             actions: Mapping[str, int]) -> tuple[np.ndarray, np.ndarray]:
-        """Apply meta-actions; returns (lane_changed, invalid), each (N,) over possible agents."""
-        n = len(self.possible_agents)
-        lane_changed, invalid = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
-        rows = prev.rows_of(acting)
-        present = rows >= 0
-        if not present.any() or not self.session.drive_avs:
-            return lane_changed, invalid
-        idx, rows = idx[present], rows[present]
-        acts = np.array([int(actions[a]) for a, p in zip(acting, present, strict=True) if p])
-        # AVs may use the highway's through lanes only, never the acceleration lane.
-        d = decide(acts, prev.lane[rows], self.zone.through[prev.edge[rows]], self._target[idx], self.cfg.av)
-        self._target[idx] = d.target_speed
-        for i, change in zip(idx, d.lane_change, strict=True):
-            if change:
-                self.session.change_lane(self.possible_agents[i], int(change))
-        lane_changed[idx] = d.lane_change != 0
-        invalid[idx] = d.invalid
-        return lane_changed, invalid
-
-    def _simulate(self, acting: list[str], idx: np.ndarray) -> None:
-        av = self.cfg.av
-        targets = {a: float(self._target[i]) for a, i in zip(acting, idx, strict=True)}
-        if not self.session.drive_avs:
-            targets = {}
-        self.session.advance(self.cfg.steps_per_decision, targets, av.accel, av.decel, av.max_speed, self._stop_on)
-
-    def _rewards(self, prev: Snapshot, snap: Snapshot, rows: np.ndarray, lane_changed: np.ndarray,
+    def _utilities(self, prev: Snapshot, snap: Snapshot, rows: np.ndarray, lane_changed: np.ndarray,
                  invalid: np.ndarray, merger_row: int, merged_now: bool
                  ) -> tuple[np.ndarray, dict, np.ndarray, np.ndarray]:
         period = self.cfg.sim.decision_period
@@ -387,43 +236,8 @@ class MergeEnv(ParallelEnv):
         # Conflicts while the agents drove, up to the episode's end (the tracker's last time), not those of the run-out.
         self.sumo_outputs[seed] = read_episode_outputs(folder, end_time, self.cfg.safety, until=self.tracker.time)
 
-    def close(self) -> None:
-        self.session.close()
+    def _closing(self) -> None:
         try:
             self._collect_outputs(None if self._snap is None else self._snap.time)
         except SimulationError as exc:  # closing must not fail on an episode SUMO did not finish writing
             log.warning("%s", exc)
-        if self._tmp is not None:
-            shutil.rmtree(self._tmp, ignore_errors=True)
-            self._tmp = None
-        self._snap = None
-        self._closed = True
-
-    def __del__(self) -> None:  # an env dropped without close() must not keep the process's SUMO slot
-        session = getattr(self, "session", None)
-        if session is not None:
-            session.close()
-        tmp = getattr(self, "_tmp", None)
-        if tmp is not None:
-            shutil.rmtree(tmp, ignore_errors=True)
-
-
-def parallel_env(config: str | Path | Mapping[str, Any] | Config | None = None,
-                 overrides: Mapping[str, Any] | list[str] | None = None,
-                 render_mode: str | None = None) -> ParallelEnv:
-    """The PettingZoo way: `cosim.parallel_env(config="configs/default.yaml", overrides={"reward.phi": 0.785})`;
-    without a config, the built-in defaults on the bundled merge net. A config with `demand.enabled` gives the
-    merge under traffic demand (`cosim.environment.demand_env.DemandEnv`), else the episode env."""
-    cfg = load_config(config, overrides)
-    if cfg.demand.enabled:
-        from cosim.environment.demand_env import DemandEnv  # it builds on this module
-
-        return DemandEnv(cfg, render_mode=render_mode)
-    return MergeEnv(cfg, render_mode=render_mode)
-
-
-def env(config: str | Path | Mapping[str, Any] | Config | None = None,
-        overrides: Mapping[str, Any] | list[str] | None = None, render_mode: str | None = None) -> AECEnv:
-    """The same env in PettingZoo's AEC form (agents act in turn; SUMO advances once all have acted), for
-    libraries that expect it: `cosim.env(config=..., overrides=...)`."""
-    return parallel_to_aec(parallel_env(config, overrides, render_mode))

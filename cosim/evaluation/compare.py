@@ -136,6 +136,26 @@ def _summary_rows(metrics: dict[str, dict[str, dict[str, float]]]) -> list[dict[
             for run, ms in metrics.items() for label in SUMMARY_METRICS if label in ms]
 
 
+def _cells(evals: Sequence[Evaluation], episodes: dict[str, int], conf: float) -> str:
+    """What a cell of the table holds, and which intervals a single episode (or demand run) leaves out."""
+    demand = all("demand" in e.summary for e in evals)
+    unit = "run" if demand else "episode"
+    single = [e.label for e in evals if episodes[e.label] < 2]
+    if demand:  # one row per seed's run, every metric a mean over them
+        text = (f"Each cell: mean over the runs, one per seed [{conf:.0%} Student t interval]. Throughput, the ramp's "
+                "queue, delay and density come from SUMO's own detectors and tripinfo output.")
+        gap = "no interval"
+    else:
+        text = (f"Each cell: mean over {unit}s [{conf:.0%} interval: Wilson score for the crash and merge rates, "
+                "Student t for the other metrics]. Throughput, time loss and mean speed come from SUMO's own "
+                "induction loops and tripinfo output.")
+        gap = "no Student t interval (the rates keep their Wilson interval)"
+    if single:  # a t-interval needs two values: say so rather than leave the reader looking for it
+        who = "" if len(single) == len(evals) else f" ({', '.join(single)})"
+        text += f" With a single {unit}{who} there is {gap}: those cells show its value alone."
+    return text
+
+
 def _report(evals: Sequence[Evaluation], metrics: dict, episodes: dict[str, int], figures: dict[str, Path],
             per_run: dict[str, list[Path]], out_dir: Path, mismatches: Sequence[str] = ()) -> str:
     conf = evals[0].summary.get("confidence", 0.95)
@@ -150,10 +170,7 @@ def _report(evals: Sequence[Evaluation], metrics: dict, episodes: dict[str, int]
         lines += ["> **Warning: these runs were not evaluated on the same episodes of the same scenario;** their "
                   "differences below mix the policies' effect with that of:", ">"]
         lines += [f"> - {m}" for m in mismatches] + [""]
-    lines += [f"Each cell: mean over episodes [{conf:.0%} interval: Wilson score for the crash and merge rates, "
-             "Student t for the other metrics]. Throughput, time loss and mean speed come from SUMO's own "
-             "induction loops and tripinfo output.", "",
-             format_table(metrics, episodes, markdown=True, confidence=conf), ""]
+    lines += [_cells(evals, episodes, conf), "", format_table(metrics, episodes, markdown=True, confidence=conf), ""]
     for e in evals:
         if "demand" in e.summary:  # a demand run's window: its demand and level of service
             from cosim.evaluation.flow_plots import demand_caption

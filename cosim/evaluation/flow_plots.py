@@ -5,7 +5,8 @@ Contract: `plot_demand(eval_dir, plots_dir, label, seeds)` draws, from a demand 
 - `speed_heatmap.png`: the mean speed along the highway (chainage [m]) over time [s] of the first seed's run, the
   warm-up shaded and the acceleration lane marked;
 - `merge_time_space.png`: the merge area's vehicles over the window of the first seed's run (chainage against
-  time, coloured by speed), the acceleration lane's start and end labelled;
+  time, coloured by speed), the acceleration lane's start and end labelled, and its collisions marked (a legend
+  entry only where there is one);
 - `flow_density.png`: per detector interval of every seed, the flow leaving the merge area [veh/h/ln] against the
   density in the merge influence area [veh/km/ln], with the HCM level-of-service bounds;
 and returns their paths. `flow_bars(summaries, path, caption)` draws the flow metrics of several policies side by
@@ -22,7 +23,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from cosim.evaluation.flow import LOS_BOUNDS, PER_MILE
-from cosim.evaluation.plots import add_caption, bars, save
+from cosim.evaluation.plots import CRASH_COLOR, add_caption, bars, save
 from cosim.evaluation.store import read_summary
 from cosim.sumo.flow_outputs import read_flow_outputs
 
@@ -86,7 +87,14 @@ def merge_time_space(rec: Mapping[str, np.ndarray], path: Path, title: str, capt
     dots = ax.scatter(pts[:, 0], pts[:, 1], c=pts[:, 2], s=1.0, cmap="RdYlGn", vmin=0.0, marker="s", lw=0)
     fig.colorbar(dots, ax=ax, label="speed [m/s]")
     _accel_lines(ax, rec, horizontal=True)
-    ax.set_xlim(*(float(x) for x in rec["window"]))
+    w0, w1 = (float(x) for x in rec["window"])
+    # Records from before the collisions' places were kept have none to draw.
+    t, s = rec["collision_times"], rec.get("collision_chainage", np.full(len(rec["collision_times"]), np.nan))
+    seen = (t >= w0) & (t <= w1) & np.isfinite(s)
+    if seen.any():  # the legend names a collision only where one is drawn
+        ax.scatter(t[seen], s[seen], s=40, marker="x", lw=1.5, color=CRASH_COLOR, zorder=3,
+                   label=f"collision ({int(seen.sum())})")
+    ax.set_xlim(w0, w1)
     ax.set_xlabel("time [s] (the measurement window)")
     ax.set_ylabel("position along the highway [m]")
     fig.suptitle(f"Time-space diagram of the merge area: {title}")

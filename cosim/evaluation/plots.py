@@ -11,7 +11,8 @@ figure has a title, axis labels with units, legends outside the axes (they cover
 - `training_curves`: return, crash rate, merge rate, distance over training episodes: per group (an SVO
   angle, or a run) the mean over its runs (seeds) of each run's rolling mean, with a band from the lowest to
   the highest run, and a marker where the group's crash rate first falls to `CRASH_TARGET` or below.
-- `time_space`: time-space diagram of the merge area, and the guide AV's speed profile and actions.
+- `time_space`: time-space diagram of the merge area (each vehicle's first moment in a collision marked, the
+  legend's "crashed" only where there is one), and the guide AV's speed profile and actions.
 - `top_views`: a few top-view snapshots around the merge.
 - `plot_evaluation`: one evaluation folder's figures (`cosim evaluate` and `cosim compare` draw through it).
 """
@@ -35,7 +36,7 @@ from matplotlib.ticker import MaxNLocator
 from cosim.config import Config, load_config
 from cosim.environment.control import Action
 from cosim.environment.render import COLOURS as TOP_VIEW_COLOURS
-from cosim.environment.render import top_view
+from cosim.environment.render import lane_markings, top_view
 from cosim.environment.velocity_map import RoadRaster, rasterize_road
 from cosim.evaluation.store import load_trajectory, trajectory_files
 from cosim.files import atomic_path, column, read_csv
@@ -49,6 +50,7 @@ CRASHED_RGB = (230, 30, 30)
 # One palette for every figure: the renderer's class colours.
 COLORS = {kind: tuple(c / 255 for c in rgb) for kind, rgb in TOP_VIEW_COLOURS.items()}
 GUIDE_COLOR = tuple(c / 255 for c in GUIDE_RGB)
+CRASH_COLOR = tuple(c / 255 for c in CRASHED_RGB)
 BAR_METRICS = ("crash [%]", "merge success [%]", "mean distance [m]", "throughput [veh/h]", "time loss [s]")
 # Training-log columns, first match wins: panel (y label with unit) -> (scale, candidate column names).
 TRAINING_COLUMNS: dict[str, tuple[float, tuple[str, ...]]] = {
@@ -281,6 +283,9 @@ def time_space(traj: Mapping[str, np.ndarray], path: Path, title: str = "", upst
         ax.plot(t, s, color=color, lw=width, zorder=3 if is_guide or kind == KIND_MERGER else 2)
         if is_guide or kind == KIND_MERGER:
             ax_v.plot(t, v, color=color, lw=1.8, label="guide AV " + vid if is_guide else "merging vehicle")
+    crashes = _crash_points(traj)
+    if len(crashes):
+        ax.scatter(crashes[:, 0], crashes[:, 1], s=50, marker="x", lw=1.8, color=CRASH_COLOR, zorder=4)
     for y, name in ((m0, "acceleration lane starts"), (m1, "acceleration lane ends")):
         ax.axhline(y, color="k", ls="--", lw=0.8)
         ax.annotate(name, (1.0, y), xycoords=("axes fraction", "data"), xytext=(4, 0), textcoords="offset points",
@@ -290,7 +295,8 @@ def time_space(traj: Mapping[str, np.ndarray], path: Path, title: str = "", upst
             a.axvline(merge_t, color="grey", ls=":", lw=1)
     ax.set_ylim(m0 - upstream, m1 + downstream)
     ax.set_ylabel("position along the highway [m]")
-    ax.legend(*class_legend(), loc="upper left", bbox_to_anchor=(1.0, 0.9), fontsize=8, frameon=False)
+    ax.legend(*class_legend(crashed=len(crashes) > 0), loc="upper left", bbox_to_anchor=(1.0, 0.9), fontsize=8,
+              frameon=False)
     ax.set_title("Time-space diagram of the merge area: position of every vehicle over time")
     ax_v.set_ylabel("speed [m/s]")
     ax_v.set_title("speeds of the guide AV and the merging vehicle", fontsize=9)
@@ -311,18 +317,31 @@ def time_space(traj: Mapping[str, np.ndarray], path: Path, title: str = "", upst
     return save(fig, path)
 
 
-def class_legend(guide: bool = True) -> tuple[list[Rectangle], list[str]]:
-    """Legend handles and labels of the top views' colours (the guide AV's only where it is drawn)."""
+def _crash_points(traj: Mapping[str, np.ndarray]) -> np.ndarray:
+    """(K, 2) time [s] and chainage [m] where each vehicle of a collision was first seen in one (rows are in step
+    order); none off the highway's axis, where the diagram has no place for it."""
+    rows = np.flatnonzero(np.asarray(traj["crashed"], dtype=bool))
+    _, first = np.unique(traj["vehicle"][rows], return_index=True)
+    rows = rows[first]
+    points = np.stack([np.asarray(traj["time"])[traj["step"][rows]], traj["s"][rows]], axis=1).reshape(-1, 2)
+    return points[np.isfinite(points[:, 1])]
+
+
+def class_legend(guide: bool = True, crashed: bool = True) -> tuple[list[Rectangle], list[str]]:
+    """Legend handles and labels of the top views' colours (the guide AV's and the crashed vehicles' only where
+    they are drawn)."""
     shown = [*zip(TOP_VIEW_COLOURS.values(), ["AV", "HV", "merging vehicle"], strict=True),
-             *([(GUIDE_RGB, "guide AV")] if guide else []), (CRASHED_RGB, "crashed")]
+             *([(GUIDE_RGB, "guide AV")] if guide else []), *([(CRASHED_RGB, "crashed")] if crashed else [])]
     return [Rectangle((0, 0), 1, 1, color=np.asarray(c) / 255) for c, _ in shown], [label for _, label in shown]
 
 
 def top_views(traj: Mapping[str, np.ndarray], road: RoadRaster, path: Path, title: str = "",
-              offsets: Sequence[float] = (-3.0, 0.0, 3.0), half_window: float = 110.0, caption: str = "") -> Path:
+              offsets: Sequence[float] = (-3.0, 0.0, 3.0), half_window: float = 110.0, caption: str = "",
+              markings: np.ndarray | None = None) -> Path:
     """Top views at the merge time plus `offsets` [s] (episode end when there was no merge), centred on the
     merging vehicle (or its last place), vehicles drawn to scale and coloured by class, the guide AV orange,
-    crashed vehicles red; drawn by the env's renderer (`cosim.environment.render.top_view`)."""
+    crashed vehicles red, the road with `markings` (`cosim.environment.render.lane_markings`) where given;
+    drawn by the env's renderer (`cosim.environment.render.top_view`)."""
     times = np.asarray(traj["time"])
     merge_t = float(traj["merge_time"])
     anchor = merge_t if math.isfinite(merge_t) else float(times[-1])
@@ -340,7 +359,7 @@ def top_views(traj: Mapping[str, np.ndarray], road: RoadRaster, path: Path, titl
                             else TOP_VIEW_COLOURS.get(int(traj["kind"][r]), TOP_VIEW_COLOURS[KIND_HV])
                             for r, v in zip(rows, ids, strict=True)], dtype=np.uint8).reshape(-1, 3)
         img, extent = top_view(road, traj["x"][rows], traj["y"][rows], traj["heading"][rows], traj["length"][rows],
-                               traj["width"][rows], colours, (cx - half_window, cx + half_window))
+                               traj["width"][rows], colours, (cx - half_window, cx + half_window), markings)
         ax.imshow(img, extent=extent, interpolation="nearest")
         ax.set_title(f"t = {times[k]:.1f} s", fontsize=9)
         ax.set_ylabel("y [m]", fontsize=8)
@@ -366,12 +385,13 @@ def plot_evaluation(eval_dir: Path, plots_dir: Path, label: str,
                               marks=accel_lane_marks(cfg), caption=caption)] if rows is not None else []
     files = trajectory_files(eval_dir)
     if files:
-        road = rasterize_road(load_roadnet(cfg.net.file).lane_shapes())
+        roadnet = load_roadnet(cfg.net.file)
+        road, markings = rasterize_road(roadnet.lane_shapes()), lane_markings(roadnet)
         for f in files:
             traj = load_trajectory(f)
             seed = f.stem.split("_")[1]
             out.append(time_space(traj, plots_dir / f"timespace_seed_{seed}.png",
                                   title=f"{label}: episode seed {seed}, guide AV {traj['guide']}", caption=caption))
             out.append(top_views(traj, road, plots_dir / f"topview_seed_{seed}.png",
-                                 title=f"{label}: episode seed {seed}", caption=caption))
+                                 title=f"{label}: episode seed {seed}", caption=caption, markings=markings))
     return out

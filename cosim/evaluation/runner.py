@@ -17,7 +17,8 @@ Contract:
   `cosim.evaluation.store.summarize_evaluation`, written atomically), `trajectories/seed_S.npz` for the first
   `trajectories` episodes, `sumo/episode_S/` (SUMO's tripinfo and induction-loop files), `plots/` (with
   `video_seed_S.mp4` or `.gif` for the first `videos` episodes, `cosim.evaluation.video`) and `report.md` (the
-  table, the figures and links to the videos).
+  table, the figures and links to the videos), where the evaluation is called `evaluation_label` (the trained
+  run's name, else the policy's), as in `cosim evaluate`'s table.
 - Resume: a second call with the same `out_dir` skips the seeds already in `episodes.csv`; a folder
   holding an evaluation of another policy / checkpoint / net / config (`config_sha256`; the folder's
   location, `sim.output_dir`, is not part of it) is refused. One writer per folder (`cosim.files.FolderLock`,
@@ -50,6 +51,7 @@ from tqdm import tqdm
 from cosim.config import EVAL_SEED_START, VALIDATION_SEED_START, Config, load_config
 from cosim.environment.control import Action
 from cosim.environment.demand_env import DemandEnv
+from cosim.environment.factory import parallel_env
 from cosim.environment.merge_env import MergeEnv
 from cosim.environment.policies import POLICIES
 from cosim.errors import ConfigError, CosimError, EpisodeError, check_at_least
@@ -219,8 +221,7 @@ class Runner:
 
 
 def _make_env(config: dict[str, Any]) -> MergeEnv | DemandEnv:
-    cfg = load_config(config)
-    return DemandEnv(cfg) if cfg.demand.enabled else MergeEnv(cfg)
+    return parallel_env(config)
 
 
 _RUNNER: Runner | None = None  # a worker process's runner, built at its first episode
@@ -299,13 +300,13 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
                         "time-space diagram of the merge area) show it", videos)
         trajectories = videos = 0
     identity = policy.identity()
-    where = setting(cfg, overrides)
+    seeds = [seed + k for k in range(episodes)]
+    where = setting(cfg, overrides, seeds)
     meta = {"policy": policy.name, "checkpoint": identity["checkpoint"], "greedy": identity["greedy"],
             "net": cfg.net.file, "net_sha256": where["net"]["sha256"], "config": cfg.source,
             "run": None if run_dir is None else str(Path(run_dir).resolve()),
             "config_sha256": config_hash(cfg.to_dict()), "scenario_sha256": scenario_hash(cfg.to_dict()),
             "trained_updates": identity["trained_updates"], "model_sha256": identity["model_sha256"]}
-    seeds = [seed + k for k in range(episodes)]
     if identity["trained_updates"] is not None:
         _warn_unless_held_out(seeds)
     job = Job(cfg.to_dict(), policy, str(out_dir), frozenset(seeds[:trajectories]), frozenset(seeds[:videos]),
@@ -341,18 +342,19 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
         if checks and max(checks) > 0.5:
             log.warning("our distances and SUMO's tripinfo differ by up to %.2f m", max(checks))
         figures: list[Path] = []
+        label = evaluation_label(policy, run_dir)
         if plots:
             from cosim.evaluation.plots import plot_evaluation  # matplotlib only when plotting
 
             if cfg.demand.enabled:
                 from cosim.evaluation.flow_plots import plot_demand
 
-                figures = plot_demand(out_dir, out_dir / "plots", policy.name, [int(r["seed"]) for r in rows])
+                figures = plot_demand(out_dir, out_dir / "plots", label, [int(r["seed"]) for r in rows])
             else:
-                figures = plot_evaluation(out_dir, out_dir / "plots", label=policy.name, rows=rows)
+                figures = plot_evaluation(out_dir, out_dir / "plots", label=label, rows=rows)
         from cosim.evaluation.compare import evaluation_report  # the comparison's report, of one evaluation
 
-        evaluation_report(out_dir, policy.name, figures)
+        evaluation_report(out_dir, label, figures)
         return summary
     except CosimError:
         if not _has_episodes(csv_path):  # nothing to keep: nothing may block the corrected rerun into this folder
@@ -360,6 +362,12 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
         raise
     finally:
         lock.release()
+
+
+def evaluation_label(policy: Policy, run_dir: Path | None) -> str:
+    """What an evaluation is called in its report, its figures and the terminal's table: the trained run's folder
+    name, else the policy's (a baseline, or a policy file without its run)."""
+    return Path(run_dir).name if run_dir is not None else policy.name
 
 
 def _has_episodes(csv_path: Path) -> bool:

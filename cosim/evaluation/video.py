@@ -5,7 +5,8 @@ Contract: `EpisodeView(env, video=True)` watches one episode of a `MergeEnv`: `s
 `video`, it keeps a frame at every `frame_period` [s] of simulation time (every SUMO step of the episode's
 decisions, through the session's `on_step`; default 0.1 s, so the video plays in real time at 10 fps) and
 `write(path)` encodes them: the top view of `merge_area` (`cosim.environment.render.top_view`, the renderer
-of the env and of the evaluation's top views) with AVs, HVs and the merging vehicle in their class's colour
+of the env and of the evaluation's top views; the road with its lane markings drawn once per video) with AVs,
+HVs and the merging vehicle in their class's colour
 and crashed vehicles red, each AV numbered, and above it the time, each AV's action and the merging
 vehicle's state (`merger_state`). MP4 (H.264) where an ffmpeg is found (imageio-ffmpeg's, from the `replay`
 extra, or one on PATH), else GIF (Pillow, matplotlib's own dependency): the suffix of the path written says
@@ -31,7 +32,7 @@ from matplotlib.patheffects import withStroke
 from cosim.environment.control import Action
 from cosim.environment.episode import MergeZone, merge_status
 from cosim.environment.merge_env import MergeEnv
-from cosim.environment.render import COLOURS, top_view
+from cosim.environment.render import COLOURS, draw_vehicles, lane_markings, road_view
 from cosim.evaluation.plots import CRASHED_RGB, class_legend
 from cosim.files import atomic_path
 from cosim.sumo.net import Net
@@ -167,11 +168,11 @@ class _FrameRenderer:
     HEADER_PX, FOOTER_PX, ABOVE_M = 60, 22, 8.0  # text above and below the view; road above it for AV numbers
 
     def __init__(self, env: MergeEnv, x_range: tuple[float, float], title: str) -> None:
-        self.road, self.x_range, self.title = env.road_raster, x_range, title
+        self.title = title
         self.agents = env.possible_agents
-        empty = np.zeros(0)
-        img, extent = top_view(self.road, empty, empty, empty, empty, empty, np.zeros((0, 3), np.uint8), x_range)
-        x0, x1, y0, y1 = extent
+        # The road and its lane markings once per video; each frame draws its vehicles on a copy.
+        self.road, self.extent = road_view(env.road_raster, x_range, lane_markings(env.net.road))
+        x0, x1, y0, y1 = self.extent
         view_px = WIDTH_PX * (y1 - y0 + self.ABOVE_M) / (x1 - x0)
         height_px = 2 * math.ceil((self.HEADER_PX + view_px + self.FOOTER_PX) / 2)
         self.fig = Figure(figsize=(WIDTH_PX / DPI, height_px / DPI), dpi=DPI, facecolor="white")
@@ -179,7 +180,7 @@ class _FrameRenderer:
         bottom = self.FOOTER_PX / height_px
         self.ax = self.fig.add_axes((0.0, bottom, 1.0, view_px / height_px))
         self.ax.set_axis_off()
-        self.image = self.ax.imshow(img, extent=extent, interpolation="nearest", aspect="equal")
+        self.image = self.ax.imshow(self.road, extent=self.extent, interpolation="nearest", aspect="equal")
         self.ax.set_xlim(x0, x1)
         self.ax.set_ylim(y0, y1 + self.ABOVE_M)
         self.header = self.fig.text(0.01, 1 - 4 / height_px, "", va="top", ha="left", fontsize=9, family="monospace")
@@ -192,7 +193,8 @@ class _FrameRenderer:
         s = frame.snap
         colours = np.array([CRASHED_RGB if c else COLOURS.get(int(k), COLOURS[KIND_HV])
                             for k, c in zip(s.kind, s.crashed, strict=True)], dtype=np.uint8).reshape(-1, 3)
-        img, _ = top_view(self.road, s.x, s.y, s.heading, s.length, s.width, colours, self.x_range)
+        img = self.road.copy()
+        draw_vehicles(img, self.extent, s.x, s.y, s.heading, s.length, s.width, colours)
         self.image.set_data(img)
         for t in self.numbers:
             t.remove()

@@ -2,7 +2,8 @@
 
 Contract: `load_net_description(roadnet, description_file)` returns a validated `NetDescription`. With a file
 it reads that YAML; without one it reads `<net stem>.yaml` beside the net if present, else infers the
-description from the net's lane topology. Every edge id, lane index and chainage used elsewhere in the
+description from the net's lane topology (logged once per net and process, as the file that would make it
+explicit: `description_yaml`). Every edge id, lane index and chainage used elsewhere in the
 toolkit comes from here, never from code. Problems raise `NetError` naming the file and the key:
 a missing file, unknown or missing keys, an edge not in the net, a lane index out of range, a merge edge not
 on the highway, edges that are not connected in the stated order, or a net whose merge cannot be inferred.
@@ -32,6 +33,7 @@ from cosim.sumo.roadnet import RoadNet
 log = logging.getLogger(__name__)
 
 KEYS = ("highway", "ramp", "merge_edge", "accel_lanes")
+_INFERRED_LOGGED: set[Path] = set()  # nets whose inferred description this process has logged
 # One line (YAML flow style), so that every error about a description stays one line.
 EXAMPLE_YAML = "{highway: [hw_in, hw_merge, hw_out], ramp: [ramp], merge_edge: hw_merge, accel_lanes: [0]}"
 
@@ -59,8 +61,19 @@ def load_net_description(roadnet: RoadNet, description_file: str | Path | None =
     if beside.is_file():
         return _from_yaml(roadnet, beside)
     desc = infer_net_description(roadnet)
-    log.info("net %s: no description file, inferred %s", roadnet.net_file, desc)
+    # Once per net and process: every env, resolution and plot of a run loads the net again.
+    if roadnet.net_file.resolve() not in _INFERRED_LOGGED:
+        _INFERRED_LOGGED.add(roadnet.net_file.resolve())
+        log.info("net %s: no description file; inferred %s (write it to %s beside the net to make it explicit)",
+                 roadnet.net_file, description_yaml(desc), beside.name)
     return desc
+
+
+def description_yaml(desc: NetDescription) -> str:
+    """`desc` as a description file holds it, on one line (YAML flow style)."""
+    return yaml.safe_dump({"highway": list(desc.highway), "ramp": list(desc.ramp), "merge_edge": desc.merge_edge,
+                           "accel_lanes": list(desc.accel_lanes)}, default_flow_style=True, sort_keys=False,
+                          width=10**6).strip()
 
 
 def _from_yaml(roadnet: RoadNet, path: Path) -> NetDescription:

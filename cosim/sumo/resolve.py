@@ -192,8 +192,12 @@ def scenario_lines(cfg: Config, net: Net) -> list[str]:
         start = f"{rng(sc.merger_distance, 'm', '.0f')} before the acceleration lane"
     else:
         start = f"{rng(sc.merger_time, 's')} before the acceleration lane"
-    return [where, f"the merging vehicle starts {start} at {rng(sc.merger_speed, 'm/s')}",
-            f"AVs: top speed {cfg.av.max_speed:.1f} m/s, speed step {cfg.av.speed_step:.2f} m/s; observation speed "
+    return [where, f"the merging vehicle starts {start} at {rng(sc.merger_speed, 'm/s')}", *driver_lines(cfg)]
+
+
+def driver_lines(cfg: Config) -> list[str]:
+    """How the AVs and HVs drive, in words: the part of `scenario_lines` that a demand run shares."""
+    return [f"AVs: top speed {cfg.av.max_speed:.1f} m/s, speed step {cfg.av.speed_step:.2f} m/s; observation speed "
             f"scale {cfg.observation.speed_scale:.1f} m/s; HVs' top speed {cfg.hv.max_speed:.1f} m/s",
             SHIELD_LINES[cfg.av.shield]]
 

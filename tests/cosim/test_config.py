@@ -123,13 +123,37 @@ def test_bound_violations_name_the_bound() -> None:
 
 
 def test_every_problem_on_its_own_line_with_the_file(tmp_path: Path) -> None:
-    path = ROOT / "configs" / "default.yaml"
+    path = tmp_path / "bad.yaml"
+    path.write_text(f"base: {ROOT / 'configs' / 'default.yaml'}\nscenario:\n  n_avs: 0\ntrain:\n  lr: fast\n"
+                    "sim:\n  nope: 1\n")
     with pytest.raises(ConfigError) as caught:
-        load_config(path, {"scenario.n_avs": 0, "train.lr": "fast", "sim.nope": 1})
+        load_config(path)
     lines = str(caught.value).splitlines()
     assert len(lines) == 3 and all(line.startswith(f"{path}: ") for line in lines)
     assert any("scenario.n_avs: must be > 0" in line for line in lines)
     assert any("train.lr: expected a number" in line for line in lines)
+
+
+def test_a_bad_set_value_names_the_set_not_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text(f"base: {ROOT / 'configs' / 'default.yaml'}\nscenario:\n  n_avs: 0\n")
+    with pytest.raises(ConfigError) as caught:
+        load_config(path, ["sim.horizon=-1", "sim.nope=1", "reward.weights={speeed: 1}"])
+    lines = {line.split(";")[0] for line in str(caught.value).splitlines()}
+    assert lines == {f"{path}: scenario.n_avs: must be > 0, got 0",  # the file's own value names the file
+                     "--set sim.horizon=-1: must be > 0, got -1",
+                     "--set sim.nope=1: unknown key",
+                     # A key below the one set is named after the --set.
+                     "--set reward.weights={speeed: 1}: reward.weights.speeed: unknown term"}
+    # A rule over a whole section judges values from both: both are named.
+    with pytest.raises(ConfigError) as caught:
+        load_config(path, ["scenario.n_avs=1", "observation.frames=100000", "observation.width_px=4096"])
+    assert str(caught.value).startswith(f"{path} with --set observation.frames=100000, --set "
+                                        "observation.width_px=4096: observation: frames x channels")
+    # Values given in code (a dict) are the caller's: their key alone, never the file.
+    with pytest.raises(ConfigError) as caught:
+        load_config(path, {"scenario.n_avs": 1, "sim.horizon": -1})
+    assert str(caught.value) == "sim.horizon: must be > 0, got -1"
 
 
 def test_base_and_set_go_through_the_same_validation(tmp_path: Path) -> None:
@@ -140,8 +164,8 @@ def test_base_and_set_go_through_the_same_validation(tmp_path: Path) -> None:
     for path, overrides in [(tmp_path / "child.yaml", None), (tmp_path / "good.yaml", ["scenario.n_avs=-1"])]:
         with pytest.raises(ConfigError) as caught:
             load_config(path, overrides)
-        messages.append(str(caught.value).removeprefix(f"{path}: "))
-    assert messages[0] == messages[1] == "scenario.n_avs: must be > 0, got -1"
+        messages.append(str(caught.value).removeprefix(f"{path}: ").removeprefix("--set scenario.n_avs=-1: "))
+    assert messages[0] == "scenario.n_avs: must be > 0, got -1" and messages[1] == "must be > 0, got -1"
 
 
 def test_train_and_evaluate_are_typed_sections() -> None:

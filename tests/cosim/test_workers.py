@@ -22,7 +22,8 @@ from agents.fake_env import CueEnv, make_fake_env, play_episode
 from agents.train import episode_seed
 from cosim.config import EVAL_SEED_START
 from cosim.errors import NetError, SimulationError
-from cosim.workers import START_ATTEMPTS, WorkerPool, remove_leftovers, run_folder
+from cosim.scratch import remove_leftovers, run_folder
+from cosim.workers import START_ATTEMPTS, WorkerPool
 
 pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
@@ -166,33 +167,6 @@ def test_a_pools_files_are_named_after_its_process() -> None:
     assert not Path(pool._tmp_root).exists() and not any(Path(f).exists() for f in pool._files)
 
 
-def test_leftovers_of_dead_owners_are_removed_and_no_others(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    tmp, shm = tmp_path / "tmp", tmp_path / "shm"
-    tmp.mkdir(), shm.mkdir()
-    monkeypatch.setattr(tempfile, "tempdir", str(tmp))
-    monkeypatch.setattr(cosim.workers, "SHM", shm)
-    gone = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(0.3)"])
-    gone_start = int(Path(f"/proc/{gone.pid}/stat").read_text().rsplit(")", 1)[1].split()[19])
-    gone.wait()
-    me, my_start = os.getpid(), int(Path("/proc/self/stat").read_text().rsplit(")", 1)[1].split()[19])
-    dead = [tmp / _owned(gone.pid, gone_start), shm / _owned(gone.pid, gone_start, "_obs_ab12"),
-            tmp / _owned(me, my_start + 1),  # this pid, but another process's: pid reuse
-            tmp / "pymp-dead1234"]  # multiprocessing's folder of a dead owner, named in its record
-    live = [tmp / _owned(me, my_start), shm / _owned(me, my_start, "_obs_cd34")]
-    others = [tmp / "pymp-other123", tmp / "cosim_obs_xyz", shm / "cosim_obs_xyz", tmp / "cosim_bench_q1",
-              tmp / "cosim_12x-34", tmp / "ray"]
-    for path in dead + live + others:
-        if "_obs_" in path.name:
-            path.write_bytes(b"0")
-        else:
-            path.mkdir()
-            (path / "file").write_text("x")
-    (dead[0] / "pymp").write_text(f"{dead[3]}\n")
-    (dead[2] / "pymp").write_text(f"{others[0]}x\n")  # not a folder beside it: nothing else is touched
-    assert sorted(remove_leftovers()) == sorted(dead[:3])
-    assert not any(p.exists() for p in dead) and all(p.exists() for p in live + others)
-
-
 @pytest.mark.parametrize("deep", [False, True])
 def test_multiprocessing_folder_goes_into_the_run_folder_and_all_goes_at_exit(deep: bool) -> None:
     # A socket path may hold 107 bytes: under a deep TMPDIR multiprocessing's folder stays beside, recorded.
@@ -201,7 +175,7 @@ def test_multiprocessing_folder_goes_into_the_run_folder_and_all_goes_at_exit(de
     tmpdir.mkdir(exist_ok=True)
     script = ("import multiprocessing.util as u, os, sys\n"
               "from agents.fake_env import make_fake_env\n"
-              "from cosim.workers import WorkerPool, run_folder\n"
+              "from cosim.scratch import run_folder\nfrom cosim.workers import WorkerPool\n"
               "for method in ('forkserver', 'spawn'):\n"
               "    pool = WorkerPool(make_fake_env(), 1, start_method=method)\n"
               "    pool.send_reset([0], [0])\n"

@@ -45,15 +45,16 @@ CASES = {
     "run-scenario --seed and --episodes": (
         _run_scenario("--seed", str(SEED_MAX), "--episodes", "2", "--save-routes", "out"),
         f"--seed: expected an integer in [0, {SEED_MAX - 1}], so that the seeds of all 2 episodes fit"),
-    "sim.seed negative": (_run_scenario("--set", "sim.seed=-3"), f"sim.seed: {SEEDS} -3"),
-    "sim.seed above 32 bits": (_run_scenario("--set", "sim.seed=3000000000"), f"sim.seed: {SEEDS} 3000000000"),
+    "sim.seed negative": (_run_scenario("--set", "sim.seed=-3"), f"--set sim.seed=-3: {SEEDS} -3"),
+    "sim.seed above 32 bits": (_run_scenario("--set", "sim.seed=3000000000"),
+                               f"--set sim.seed=3000000000: {SEEDS} 3000000000"),
     "evaluate --seed": (_evaluate("--seed", "-5"),
                         "--seed: expected an integer in [0, 2147483548], so that the seeds of all 100"),
     "evaluate --seed and --episodes": (_evaluate("--seed", str(SEED_MAX - 5), "--episodes", "8"),
                                        "so that the seeds of all 8 episodes fit"),
     "evaluate.seed": (_evaluate("--set", f"evaluate.seed={SEED_MAX}"),
-                      "evaluate.seed: expected an integer in [0, 2147483548]"),
-    "train.seed": (_train("--config", SMOKE, "--set", "train.seed=-1"), f"train.seed: {SEEDS} -1"),
+                      f"--set evaluate.seed={SEED_MAX}: expected an integer in [0, 2147483548]"),
+    "train.seed": (_train("--config", SMOKE, "--set", "train.seed=-1"), f"--set train.seed=-1: {SEEDS} -1"),
     "sweep --seeds": (["sweep", "--config", SMOKE, "--phi", "0", "--seeds", "0", "-1", "--budget-min", "1",
                        "--out", "out"], f"--seeds: {SEEDS} -1"),
     # YAML that cannot be read: the file or the key, and where.
@@ -75,11 +76,11 @@ CASES = {
         "observation: frames x channels x height_px x width_px = 100000 x 4 x 4096 x 4096 = 6,710,886,400,000 "
         "values per agent, more than 16,777,216"),
     "step_length": (_run_scenario("--set", "sim.step_length=5", "--set", "sim.decision_period=5",
-                                  "--set", "sim.horizon=1"), "sim.step_length: must be <= 1, got 5"),
+                                  "--set", "sim.horizon=1"), "--set sim.step_length=5: must be <= 1, got 5"),
     "horizon below a decision": (_run_scenario("--set", "sim.decision_period=5", "--set", "sim.horizon=1"),
-                                 "sim.horizon: must be at least decision_period (5 s), got 1 s"),
+                                 "--set sim.horizon=1: must be at least decision_period (5 s), got 1 s"),
     "horizon not whole decisions": (_run_scenario("--set", "sim.horizon=10.5"),
-                                    "sim.horizon: must be a whole number of decision periods"),
+                                    "--set sim.horizon=10.5: must be a whole number of decision periods"),
     # Sizes that multiply memory: a batch of 1e8 decision steps, a million worker processes (each its own SUMO).
     "batch beyond memory": (_train("--config", SMOKE, "--set", "sim.horizon=100000000"),
                             "one update's batch (100,000,000 decision steps x 2 workers x 2 AVs x 81,920 observation "

@@ -34,7 +34,7 @@ def smoke_run(tmp_path_factory: pytest.TempPathFactory, cli_class: type) -> Path
 
 
 @pytest.mark.parametrize("args,expected", [
-    (["run-scenario", "--config", SMOKE, "--set", "scenario.nope=1"], "config key scenario.nope: unknown"),
+    (["run-scenario", "--config", SMOKE, "--set", "scenario.nope=1"], "--set scenario.nope=1: unknown key"),
     (["run-scenario", "--config", SMOKE, "--set", "reward.phi=abc"], "expected a number or a list of numbers"),
     (["run-scenario", "--config", SMOKE, "--set", "net.file=missing.net.xml"], "missing.net.xml: not found"),
     (["run-scenario", "--config", SMOKE, "--set", "sim.decision_period=0.25"], "whole number of"),
@@ -55,7 +55,8 @@ def smoke_run(tmp_path_factory: pytest.TempPathFactory, cli_class: type) -> Path
      "demand.enabled: check-net judges the episode scenario"),
     (["run-scenario", "--config", SMOKE, "--net", "no_such.net.xml"], "--net no_such.net.xml: not found"),
     (["evaluate", "--config", SMOKE, "--policy", "idle", "--out", "x", "--set", "demand.enabled=true",
-      "--set", "demand.warmup=45"], "demand.warmup: must be a whole number of demand.interval"),
+      "--set", "demand.warmup=45"],
+     "--set demand.warmup=45: must be a whole number of demand.interval"),
     (["train", "--config", SMOKE, "--out", "run", "--backend", "ray", "--ray-address", "127.0.0.1:1"],
      "127.0.0.1:1: cannot reach it"),
 ])

@@ -8,9 +8,8 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 from cosim.config import SEED_MAX, load_config
-from cosim.environment.control import Action
+from cosim.environment.control import Action, ActionError
 from cosim.environment.demand_env import DemandEnv
-from cosim.environment.merge_env import ActionError
 from cosim.errors import ConfigError
 from cosim.sumo.demand import plan_demand, resolve_demand
 from cosim.sumo.net import load_net

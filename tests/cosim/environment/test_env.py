@@ -11,8 +11,8 @@ import pytest
 from pettingzoo.test import parallel_api_test
 
 import cosim
-from cosim.environment.control import Action
-from cosim.environment.merge_env import ActionError, MergeEnv, agent_masks
+from cosim.environment.control import Action, ActionError, agent_masks
+from cosim.environment.merge_env import MergeEnv
 from cosim.environment.policies import scripted_policy
 from cosim.environment.tracker import EpisodeTracker
 from cosim.errors import SimulationError
@@ -193,7 +193,7 @@ def test_acceleration_limit_is_applied(env: MergeEnv) -> None:
     env.reset(seed=0)
     v0 = env.snapshot.speed[env.snapshot.row_of("av_2")]
     # Three accelerate actions at once would ask for +3 steps; in one period the AV gains at most accel * T.
-    env._target[2] = v0 + 3 * cfg.av.speed_step
+    env._target["av_2"] = v0 + 3 * cfg.av.speed_step
     env.step(_only(env, "av_2", Action.IDLE))
     gained = env.snapshot.speed[env.snapshot.row_of("av_2")] - v0
     assert gained == pytest.approx(min(cfg.av.accel * cfg.sim.decision_period, 3 * cfg.av.speed_step,

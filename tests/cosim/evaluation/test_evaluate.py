@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 
 from agents.checkpoint import CheckpointError, TrainedPolicy, act_agents, save_checkpoint
 from agents.model import ActorCritic
@@ -331,6 +332,39 @@ def test_an_evaluation_records_what_it_ran_on_and_compare_warns_across_nets(
     assert "different net file content (net_sha256)" in caplog.text
     text = (tmp_path / "report" / "report.md").read_text()
     assert "## Setting of dilemma" in text and "## Setting of two_lane" in text
+
+
+def test_the_terminal_table_and_the_report_call_a_trained_run_alike(tmp_path: Path, capsys) -> None:
+    cfg = _cfg()
+    run = tmp_path / "smoke_run"
+    run.mkdir()
+    (run / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    _tiny_checkpoint(run / "checkpoint.pt", (cfg.observation.frames, len(cfg.observation.channels),
+                                             cfg.observation.height_px, cfg.observation.width_px))
+    assert main(["evaluate", "--run", str(run), "--episodes", "1", "--no-plots", "--out", str(tmp_path / "ev")]) == 0
+    header = capsys.readouterr().out.splitlines()[0]
+    report = (tmp_path / "ev" / "report.md").read_text()
+    assert "smoke_run (n=1)" in header and "| smoke_run (n=1) |" in report and "Runs: **smoke_run**" in report
+    # One episode: the t-intervals are missing, and the report says so (the rates keep their Wilson interval).
+    assert "With a single episode there is no Student t interval" in report
+
+
+def test_a_demand_report_states_the_demand_not_the_episode_scenario(tmp_path: Path) -> None:
+    out = tmp_path / "demand"
+    assert main(["evaluate", "--policy", "sumo", "--config", "configs/demand.yaml", "--episodes", "1", "--no-plots",
+                 "--set", "demand.warmup=30", "--set", "demand.window=60", "--out", str(out)]) == 0
+    setting = (out / "report.md").read_text().split("## Setting")[1]
+    for needle in ("- demand: mainline 1440 veh/h per lane on 2 lane(s) (60% of a highway lane's 2400 pc/h), ramp "
+                   "840 veh/h (40% of its 2100 pc/h)", "- AVs: 10% of the mainline vehicles",
+                   "- times: warm-up 30 s (not measured), then a 60 s measurement window",
+                   "- runs: one per seed, seed 10000000", "- drivers: AVs: top speed",
+                   "- overrides: `--set demand.warmup=30` `--set demand.window=60`"):
+        assert needle in setting, needle
+    # The episode scenario's lines mean nothing here.
+    for needle in ("flow window", "each episode", "a stream of HVs", "the merging vehicle starts"):
+        assert needle not in setting, needle
+    # One run: no interval at all, and the report says so.
+    assert "With a single run there is no interval" in (out / "report.md").read_text()
 
 
 def test_cli_evaluate_videos_beside_the_time_space_diagrams(tmp_path: Path, caplog) -> None:

@@ -88,6 +88,27 @@ def test_time_space_lines_are_continuous_through_the_junction(merged_episode, fi
     assert merged_episode["kind"].tolist().count(KIND_MERGER) == len(s)
 
 
+def test_time_space_marks_a_crash_and_names_crashed_only_then(figures, readable, tmp_path: Path) -> None:
+    # Three vehicles over three steps; the guide AV runs into the HV ahead at the last one (its rows flagged).
+    vehicle, step = np.tile([0, 1, 2], 3), np.repeat([0, 1, 2], 3)
+    s = np.array([400.0, 420.0, 380.0])[vehicle] + 10.0 * step
+    traj = {"guide": np.asarray("av_0"), "merge_time": np.asarray(np.nan), "merge_start": np.asarray(500.0),
+            "merge_end": np.asarray(620.0), "ids": np.array(["av_0", "hv_0", "merger_0"]), "vehicle": vehicle,
+            "step": step, "kind": np.array([0, 1, KIND_MERGER])[vehicle], "s": s, "speed": np.full(9, 20.0),
+            "crashed": (step == 2) & (vehicle < 2), "time": np.array([0.0, 0.5, 1.0]),
+            "guide_actions": np.array([0, 1])}
+    legends = []
+    for crashed in (traj["crashed"], np.zeros(9, bool)):
+        plots.time_space({**traj, "crashed": crashed}, tmp_path / "ts.png", title="by hand", caption=CAPTION)
+        ax = figures[-1].axes[0]
+        readable(figures[-1], CAPTION)
+        legends.append([t.get_text() for t in ax.get_legend().get_texts()])
+        points = [c.get_offsets().tolist() for c in ax.collections]
+        assert points == ([[[1.0, 420.0], [1.0, 440.0]]] if crashed.any() else [])
+    assert legends == [["AV", "HV", "merging vehicle", "guide AV", "crashed"], ["AV", "HV", "merging vehicle",
+                                                                               "guide AV"]]
+
+
 def test_bars_hold_the_flow_metrics(figures, readable, tmp_path: Path) -> None:
     stats = {m: {"mean": 10.0, "ci_low": 8.0, "ci_high": 12.0} for m in plots.BAR_METRICS}
     plots.bars({"courteous": stats, "scripted": stats}, tmp_path / "bars.png", caption=CAPTION)

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import imageio_ffmpeg
+import numpy as np
 import pytest
 from PIL import Image
 
@@ -105,6 +106,15 @@ def test_mp4_with_ffmpeg_gif_without(tmp_path: Path, monkeypatch: pytest.MonkeyP
     assert frames == len(view.frames) and meta["fps"] == 10.0
     assert width == 960 and height % 2 == 0 and 150 < height < 400
     assert 20_000 < mp4.stat().st_size < 2_000_000
+    # The road has its lane markings: between the first and last rows of the dark background around the road,
+    # rows mostly of light paint (a solid side line) and rows a quarter painted (a dashed line between lanes).
+    reader = imageio_ffmpeg.read_frames(str(mp4))
+    next(reader)  # the metadata
+    frame = np.frombuffer(next(reader), np.uint8).reshape(height, width, 3)
+    reader.close()
+    around = np.flatnonzero((frame < 50).all(axis=-1).mean(axis=1) > 0.2)
+    paint = (frame[around[0]: around[-1] + 1] > 200).all(axis=-1).mean(axis=1)  # (rows,) share of light pixels
+    assert paint.max() > 0.9 and ((paint > 0.2) & (paint < 0.3)).any()
     monkeypatch.setattr(video, "find_ffmpeg", lambda: None)
     gif = view.write(tmp_path / "episode", title="courteous")
     assert gif == tmp_path / "episode.gif"

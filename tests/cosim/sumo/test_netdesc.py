@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import logging
 import re
 from pathlib import Path
 
 import pytest
+import yaml
 
 from cosim.errors import NetError
 from cosim.sumo.net import Net
@@ -44,6 +46,29 @@ def test_inference_matches_the_builders_yaml(tmp_path: Path, lanes: int) -> None
     assert inferred.source == "inferred"
     for key in ("highway", "ramp", "merge_edge", "accel_lanes"):
         assert getattr(inferred, key) == getattr(from_yaml, key)
+
+
+def test_an_inferred_description_is_logged_once_per_net_as_the_file_to_write(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    net_file = build_merge_net(tmp_path, lanes=2, accel_length=90)
+    net_file.with_name("merge.yaml").unlink()
+    caplog.set_level(logging.INFO, logger="cosim.sumo.netdesc")
+    for _ in range(3):  # a run loads its net again and again: env, resolution, detectors, plots
+        desc = load_net_description(load_roadnet(net_file), None)
+    (record,) = [r for r in caplog.records if "no description file" in r.getMessage()]
+    message = record.getMessage()
+    assert len(message) < 300
+    # The description as the file would hold it, and where to write it.
+    written = re.search(r"inferred (\{.*\}) \(write it to merge\.yaml beside the net to make it explicit\)$",
+                        message)
+    assert written is not None
+    assert yaml.safe_load(written[1]) == {"highway": list(desc.highway), "ramp": list(desc.ramp),
+                                          "merge_edge": desc.merge_edge, "accel_lanes": list(desc.accel_lanes)}
+    # Written there, it describes the same net.
+    net_file.with_name("merge.yaml").write_text(written[1] + "\n")
+    explicit = load_net_description(load_roadnet(net_file), None)
+    assert explicit.source == str(net_file.with_name("merge.yaml"))
+    assert all(getattr(explicit, k) == getattr(desc, k) for k in ("highway", "ramp", "merge_edge", "accel_lanes"))
 
 
 def test_chainage_helpers(net: RoadNet) -> None:

@@ -58,7 +58,7 @@ def test_a_relative_key_and_its_absolute_twin_are_one_quantity(dilemma) -> None:
     # Both in one layer: an error naming both.
     with pytest.raises(ConfigError, match=r"scenario.stream_speed: set together with stream_speed_factor"):
         load_config({"scenario": {"stream_speed": [20, 24], "stream_speed_factor": [0.6, 0.7]}})
-    with pytest.raises(ConfigError, match=r"scenario.merger_pos: set together with merger_time"):
+    with pytest.raises(ConfigError, match=r"--set scenario.merger_pos=\[0, 10\]: set together with merger_time"):
         load_config(DEFAULT, ["scenario.merger_time=[2, 3]", "scenario.merger_pos=[0, 10]"])
     # A later layer replaces the earlier one's twin: an override over the file, a file over its base.
     c = load_config(DEFAULT, ["scenario.stream_speed=[20, 24]", "scenario.n_hvs=4", "av.max_speed=30"])
