@@ -66,9 +66,30 @@ def _first_line(doc: str | None) -> str:
     return " ".join((doc or "").strip().split("\n\n")[0].split())
 
 
+def _table(path: str, cls: Any, defs: dict[str, Any]) -> list[str]:
+    """The key table of the section model `cls` at the dotted `path`, then one for each section nested in it."""
+    # A section given in a file starts from its class's defaults (for `merger:` not Config's, noted below).
+    section_defaults = cls().model_dump(mode="json")
+    lines = [f"### `{path}:`", ""]
+    if doc := _first_line(cls.__doc__):
+        lines += [_cell(doc), ""]
+    lines += ["| key | type | default | bounds | description |", "|---|---|---|---|---|"]
+    nested = []
+    for key, prop in defs[cls.__name__]["properties"].items():
+        if "$ref" in prop:  # a section inside the section: its own table
+            nested.append(key)
+            lines.append(f"| `{path}.{key}` | section | see `{path}.{key}:` | | {_cell(prop.get('description', ''))} |")
+            continue
+        lines.append(f"| `{path}.{key}` | {_cell(_type(prop))} | {_show(section_defaults.get(key))} | "
+                     f"{_bounds(prop)} | {_cell(prop.get('description', ''))} |")
+    lines.append("")
+    for key in nested:
+        lines += _table(f"{path}.{key}", cls.model_fields[key].annotation, defs)
+    return lines
+
+
 def markdown() -> str:
     from cosim.config import Config, DriverConfig, load_config
-    from cosim.environment.reward import TERMS
 
     schema = Config.model_json_schema()
     defs = schema["$defs"]
@@ -78,31 +99,31 @@ def markdown() -> str:
     for section, ref in schema["properties"].items():
         if "$ref" not in ref:
             continue  # `source`: where a config came from, not a key
-        name = ref["$ref"].rsplit("/", 1)[-1]
         cls = Config.model_fields[section].annotation
-        # A section given in a file starts from its class's defaults (for `merger:` not Config's, noted below).
         section_defaults = cls().model_dump(mode="json")
-        lines += [f"### `{section}:`", ""]
-        if doc := _first_line(cls.__doc__):
-            lines += [_cell(doc), ""]
-        lines += ["| key | type | default | bounds | description |", "|---|---|---|---|---|"]
-        for key, prop in defs[name]["properties"].items():
-            lines.append(f"| `{section}.{key}` | {_cell(_type(prop))} | {_show(section_defaults.get(key))} | "
-                         f"{_bounds(prop)} | {_cell(prop.get('description', ''))} |")
-        lines.append("")
+        lines += _table(section, cls, defs)
         if cls is DriverConfig and defaults[section] != section_defaults:
             changed = ", ".join(f"`{section}.{k}` {_show(v)}" for k, v in defaults[section].items()
                                 if section_defaults.get(k) != v)
             lines += [f"Without a `{section}:` section the built-in config gives {changed}; a `{section}:` section "
                       "in a file starts from the defaults in the table.", ""]
-        if section == "reward":
-            weights = ", ".join(f"`{k}` {_number(getattr(v, 'weight', v))}" for k, v in TERMS.items())
-            lines += [f"The utility terms' built-in weights (`cosim.environment.reward.TERMS`): {weights}.", ""]
-        differs = {k: v for k, v in default_yaml[section].items() if defaults[section].get(k) != v}
+        differs = {f"{section}.{k}": v for k, v in _flat(default_yaml[section]).items()
+                   if _flat(defaults[section]).get(k) != v}
         if differs:
-            given = ", ".join(f"`{section}.{k}` {_show(v)}" for k, v in differs.items())
+            given = ", ".join(f"`{k}` {_show(v)}" for k, v in differs.items())
             lines += [f"`configs/default.yaml` gives {given}.", ""]
     return "\n".join(lines)
+
+
+def _flat(section: dict[str, Any]) -> dict[str, Any]:
+    """A section's values by dotted key below it, nested sections' keys included (`weights.merge`)."""
+    out: dict[str, Any] = {}
+    for key, value in section.items():
+        if isinstance(value, dict) and key != "lc_params":  # lc_params: a mapping value, not a section
+            out.update({f"{key}.{k}": v for k, v in _flat(value).items()})
+        else:
+            out[key] = value
+    return out
 
 
 if __name__ == "__main__":

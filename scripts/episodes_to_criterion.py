@@ -16,9 +16,11 @@ import shlex
 import sys
 from pathlib import Path
 
+from agents.config import train_config
 from agents.logs import VALIDATION_LOG
 from agents.validation import CRASH_HIGH_MAX, CRASH_MAX, MERGE_GAP, meets_criterion
-from cosim.config import VALIDATION_SEED_START, load_config
+from cosim.config import DEFAULT_CONFIG, VALIDATION_SEED_START, Config, load_config
+from cosim.environment.reward import TERMS
 from cosim.errors import CosimError, run_script
 from cosim.evaluation.runner import Baseline, evaluate
 from cosim.files import atomic_write_text, read_csv, write_json
@@ -40,6 +42,7 @@ def main() -> None:
     reference = evaluate(first, Baseline("courteous"), args.out / "courteous_validation",
                          episodes=first.train.eval_episodes, seed=VALIDATION_SEED_START, workers=args.workers,
                          trajectories=0, plots=False)["metrics"]["merge success [%]"]["mean"]
+    default = load_config(DEFAULT_CONFIG)
     rows = []
     for run in runs:
         cfg = load_config(run / "config.yaml")
@@ -48,6 +51,7 @@ def main() -> None:
         met = next((v for v in validations if meets_criterion(v, phi, reference)), None)
         last = validations[-1] if validations else {}
         rows.append({"run": str(run), "phi": phi, "seed": cfg.train.seed, "validations": len(validations),
+                     "differs": _differs(cfg, default), "curve": [(v["episodes"], v["crash"]) for v in validations],
                      "last_validated": last.get("episodes", 0), "met_at_episodes": met and met["episodes"],
                      "met_at_train_s": met and met["train_s"], "best_crash": min((v["crash"] for v in validations),
                                                                                 default=math.nan)})
@@ -56,17 +60,29 @@ def main() -> None:
              f"Criterion: validation crash <= {CRASH_MAX:g}% with its upper bound <= {CRASH_HIGH_MAX:g}%; at phi > 0 "
              f"also merge success >= courteous's on the validation seeds ({reference:.1f}%) - {MERGE_GAP:g} "
              "points.", "",
-             "| run | phi | seed | last validation at [episodes] | criterion met at [episodes] | [h of training] | "
-             "lowest crash [%] |",
+             "| run | phi | seed | differs from configs/default.yaml | validation crash [%] at [episodes] | "
+             "criterion met at [episodes] | [h of training] |",
              "|---|---|---|---|---|---|---|"]
     for r in rows:
-        met = "not yet" if r["met_at_episodes"] is None else f"{r['met_at_episodes']:,.0f}"
+        met = f"not by {r['last_validated']:,.0f}" if r["met_at_episodes"] is None else f"{r['met_at_episodes']:,.0f}"
         hours = "" if r["met_at_train_s"] is None else f"{r['met_at_train_s'] / 3600:.2f}"
-        lines.append(f"| {r['run']} | {r['phi']:.4f} | {r['seed']} | {r['last_validated']:,.0f} | {met} | {hours} | "
-                     f"{r['best_crash']:.1f} |")
+        curve = ", ".join(f"{c:.1f} ({e:,.0f})" for e, c in r["curve"])
+        lines.append(f"| {r['run']} | {r['phi']:.4f} | {r['seed']} | {r['differs'] or 'nothing'} | {curve} | {met} | "
+                     f"{hours} |")
     atomic_write_text(args.out / "criterion.md", "\n".join(lines) + "\n")
     write_json(args.out / "criterion.json", {"merge_reference": reference, "runs": rows})
     print("\n".join(lines))
+
+
+def _differs(cfg: Config, default: Config) -> str:
+    """The run's training and reward settings that are not the default config's (the seed, the SVO angle and the
+    bookkeeping keys aside), as KEY=VALUE."""
+    ignored = {"seed", "eval_every", "eval_episodes", "torch_threads", "episodes", "checkpoint_every", "log_every"}
+    mine, theirs = train_config(cfg).model_dump(), train_config(default).model_dump()
+    out = [f"train.{k}={v}" for k, v in mine.items() if k not in ignored and theirs.get(k) != v]
+    out += [f"reward.weights.{k}={getattr(cfg.reward.weights, k)}" for k in TERMS
+            if getattr(cfg.reward.weights, k) != getattr(default.reward.weights, k)]
+    return " ".join(out)
 
 
 if __name__ == "__main__":

@@ -2,16 +2,17 @@
 functions).
 
 Contract:
-- `TERMS` maps each term's name to its default weight and its function of a `StepChange` (what one decision
-  step did to every vehicle of the snapshot), giving the term's unweighted value per vehicle (V,). Adding a
-  term is one function and one line: `@term("name", weight)` above it; `reward.weights.name` then sets its
-  weight, `infos[agent]["reward_terms"]` reports it and the trainer logs it. This module owns the term names:
-  `cosim.config` imports nothing of it at load and checks `reward.weights` against `TERMS` when it validates
-  a config, so a term registered before the config is loaded is a key there. The terms: `speed` (progress /
-  (max speed * period), in [0, 1]), `accel` (-|speed change| / (AV accel * period), every vehicle, so
-  forcing humans to brake costs the social part), `lane_change` and `invalid_action` (-1, AVs only),
-  `collision` (-1 if crashed), `merge` (+1 for the merging vehicle on the step it merges).
-- `utility_terms(step)` evaluates every term; `weighted_utility(terms, cfg)` weighs them.
+- `TERMS` maps each term's name to its function of a `StepChange` (what one decision step did to every vehicle
+  of the snapshot), giving the term's unweighted value per vehicle (V,). The names, weights (default,
+  description, unit) and order are the fields of the config's `cosim.config.RewardWeights`, so the key
+  reference and the JSON schema list every term: adding a term is its function here, `@term("name")` above it,
+  and its field there; `reward.weights.name` then sets its weight, `infos[agent]["reward_terms"]` reports it
+  and the trainer logs it. `term` refuses a name that is no field (at import), and the tests check that the
+  registry's names are the fields, in order. The terms: `speed` (progress / (max speed * period), in [0, 1]),
+  `accel` (-|speed change| / (AV accel * period), every vehicle, so forcing humans to brake costs the social
+  part), `lane_change` and `invalid_action` (-1, AVs only), `collision` (-1 if crashed), `merge` (+1 for the
+  merging vehicle on the step it merges).
+- `utility_terms(step)` evaluates every term; `weighted_utility(terms, cfg)` weighs them by `cfg.weights`.
 - `svo_rewards(u, observed, ego_rows, merger_row, phis)` is the paper's Eq. (3):
   R_i = cos(phi_i) u_i + sin(phi_i) (sum of u over the others i observes + u_M), where, as in the paper's
   sum over k in V~ ∪ {M}, the merging vehicle counts whether observed or not.
@@ -21,12 +22,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from cosim.config import RewardConfig
+from cosim.config import RewardConfig, RewardWeights
 
 
 @dataclass(frozen=True)
@@ -44,66 +43,64 @@ class StepChange:
     period: float  # [s] decision period
 
 
-@dataclass(frozen=True)
-class Term:
-    weight: float  # default weight; `reward.weights` overrides it
-    value: Callable[[StepChange], np.ndarray]  # unweighted value per vehicle (V,)
+Term = Callable[[StepChange], np.ndarray]  # a term's unweighted value per vehicle (V,)
+TERMS: dict[str, Term] = {}  # in registration order, which is the order of summation (RewardWeights' fields)
 
 
-TERMS: dict[str, Term] = {}  # in registration order, which is the order of summation
+def term(name: str) -> Callable[[Term], Term]:
+    """Register a utility term under `name`, a field of `RewardWeights` (its weight); `ValueError` otherwise, or
+    when `name` is registered already, so a term cannot exist without its config key or go unweighted."""
+    if name not in RewardWeights.model_fields:
+        raise ValueError(f"utility term {name!r} has no weight: add the field {name} to cosim.config.RewardWeights "
+                         f"(its terms: {', '.join(RewardWeights.model_fields)})")
+    if name in TERMS:
+        raise ValueError(f"utility term {name!r} is registered already")
 
-
-def term(name: str, weight: float) -> Callable[[Callable[[StepChange], np.ndarray]], Callable]:
-    """Register a utility term under `name` with its default weight."""
-    def register(fn: Callable[[StepChange], np.ndarray]) -> Callable[[StepChange], np.ndarray]:
-        TERMS[name] = Term(weight, fn)
+    def register(fn: Term) -> Term:
+        TERMS[name] = fn
         return fn
 
     return register
 
 
-@term("speed", 1.0)
+@term("speed")
 def _speed(s: StepChange) -> np.ndarray:
     return np.clip(s.progress / (s.max_speed * s.period), 0.0, 1.0)
 
 
-@term("lane_change", 0.05)
+@term("lane_change")
 def _lane_change(s: StepChange) -> np.ndarray:
     return -s.lane_changed.astype(np.float64)
 
 
-@term("invalid_action", 0.1)
+@term("invalid_action")
 def _invalid_action(s: StepChange) -> np.ndarray:
     return -s.invalid.astype(np.float64)
 
 
-@term("accel", 0.05)
+@term("accel")
 def _accel(s: StepChange) -> np.ndarray:
     return -np.abs(s.speed_change) / (s.max_accel * s.period)
 
 
-@term("collision", 5.0)  # -5 as in the authors' follow-up code
+@term("collision")
 def _collision(s: StepChange) -> np.ndarray:
     return -s.crashed.astype(np.float64)
 
 
-# +10 as in the authors' follow-up code. With +2, letting the merging vehicle in lowered the guide AV's own
-# discounted return at phi = pi/4 (courteous 41.5 vs scripted 42.3 over 60 episodes); with +10 it raises it
-# (45.3 vs 42.8). Against SUMO-driven AVs, though, gap-opening ones earn no more with +10, so the default scenario
-# sets 50 (configs/default.yaml, results/calibration/merge_weight.md).
-@term("merge", 10.0)
+@term("merge")
 def _merge(s: StepChange) -> np.ndarray:
     return s.merged_now.astype(np.float64)
 
 
 def utility_terms(step: StepChange) -> dict[str, np.ndarray]:
     """Every registered term's unweighted values (V,)."""
-    return {name: t.value(step) for name, t in TERMS.items()}
+    return {name: value(step) for name, value in TERMS.items()}
 
 
 def weighted_utility(terms: dict[str, np.ndarray], cfg: RewardConfig) -> dict[str, np.ndarray]:
-    """Each term times its weight; the utility is the sum of the returned arrays."""
-    return {name: cfg.weight(name) * terms[name] for name in TERMS}
+    """Each term times its weight (`cfg.weights.<name>`); the utility is the sum of the returned arrays."""
+    return {name: getattr(cfg.weights, name) * terms[name] for name in TERMS}
 
 
 def svo_rewards(utility: np.ndarray, observed: np.ndarray, ego_rows: np.ndarray, merger_row: int,

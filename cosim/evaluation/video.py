@@ -129,6 +129,11 @@ class EpisodeView:
         speed = f", {snap.speed[row[0]]:.1f} m/s" if row.size else ""
         self.frames.append(Frame(snap, dict(self._actions), state + speed))
 
+    @property
+    def shows_crash(self) -> bool:
+        """Whether a frame shows a crashed vehicle (the video's legend names the colour only then)."""
+        return any(frame.snap.crashed.any() for frame in self.frames)
+
     def write(self, path: Path, title: str = "") -> Path:
         """Encode the frames into `path` with the suffix of the format written (.mp4, or .gif without an
         ffmpeg); returns the path written."""
@@ -137,7 +142,7 @@ class EpisodeView:
         ffmpeg = find_ffmpeg()
         path = Path(path).with_suffix(".mp4" if ffmpeg else ".gif")
         x0, _, x1, _ = merge_area(self.env.net)
-        renderer = _FrameRenderer(self.env, (x0, x1), title)
+        renderer = _FrameRenderer(self.env, (x0, x1), title, self.shows_crash)
         if ffmpeg:
             writer: animation.AbstractMovieWriter = animation.FFMpegWriter(
                 fps=self.fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p", "-crf", "26"])
@@ -167,7 +172,8 @@ class _FrameRenderer:
 
     HEADER_PX, FOOTER_PX, ABOVE_M = 60, 22, 8.0  # text above and below the view; road above it for AV numbers
 
-    def __init__(self, env: MergeEnv, x_range: tuple[float, float], title: str) -> None:
+    def __init__(self, env: MergeEnv, x_range: tuple[float, float], title: str, crashed: bool) -> None:
+        """`crashed`: some frame shows a crashed vehicle (the legend names the colour only then)."""
         self.title = title
         self.agents = env.possible_agents
         # The road and its lane markings once per video; each frame draws its vehicles on a copy.
@@ -184,8 +190,8 @@ class _FrameRenderer:
         self.ax.set_xlim(x0, x1)
         self.ax.set_ylim(y0, y1 + self.ABOVE_M)
         self.header = self.fig.text(0.01, 1 - 4 / height_px, "", va="top", ha="left", fontsize=9, family="monospace")
-        self.fig.legend(*class_legend(guide=False), loc="lower right", ncols=4, fontsize=7, frameon=False,
-                        bbox_to_anchor=(1.0, 0.0))
+        self.fig.legend(*class_legend(guide=False, crashed=crashed), loc="lower right", ncols=4, fontsize=7,
+                        frameon=False, bbox_to_anchor=(1.0, 0.0))
         self.fig.text(0.01, 0.01, f"top view to scale, x {x0:.0f}-{x1:.0f} m (SUMO network coordinates); "
                       "numbers: the AVs", fontsize=7, va="bottom")
         self.numbers: list = []

@@ -311,8 +311,25 @@ def test_inconsistent_timing_is_refused() -> None:
 
 
 def test_config_does_not_import_the_reward_module() -> None:
-    # The reward module owns the term names; the config looks them up only when it judges weights.
-    code = ("import sys, cosim.config; assert 'cosim.environment.reward' not in sys.modules; "
-            "cosim.config.load_config(None, {'reward.weights': {'merge': 1.0}}); "
-            "assert 'cosim.environment.reward' in sys.modules")
+    # The config types the terms' weights itself (RewardWeights); the reward module builds on it, not back.
+    code = ("import sys, cosim.config; cosim.config.load_config(None, {'reward.weights': {'merge': 1.0}}); "
+            "assert not [m for m in sys.modules if m.startswith(('cosim.environment', 'torch'))]")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_reward_weights_are_a_typed_section() -> None:
+    defs = Config.model_json_schema()["$defs"]
+    assert defs["RewardConfig"]["properties"]["weights"]["$ref"].endswith("/RewardWeights")
+    weights = defs["RewardWeights"]["properties"]
+    assert weights["merge"]["default"] == 10.0 and weights["collision"]["minimum"] == 0
+    cfg = load_config(ROOT / "configs" / "default.yaml")
+    assert (cfg.reward.weights.merge, cfg.reward.weights.speed) == (50.0, 1.0)
+    # Only the weights given are written out, as a run's config.yaml always held them, so saved runs compare equal.
+    assert cfg.to_dict()["reward"]["weights"] == {"merge": 50.0}
+    assert load_config(cfg.to_dict()).reward == cfg.reward
+    with pytest.raises(ConfigError) as caught:
+        load_config(None, {"reward.weights": {"merge": -1, "speeed": 1}})
+    assert str(caught.value) == ("reward.weights.speeed: unknown term; the terms: speed, lane_change, invalid_action, "
+                                 "accel, collision, merge")
+    with pytest.raises(ConfigError, match=r"^--set reward.weights.merge=-1: must be >= 0, got -1$"):
+        load_config(None, ["reward.weights.merge=-1"])

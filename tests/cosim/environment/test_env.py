@@ -231,7 +231,7 @@ def test_provoked_collision_ends_the_right_agents(on_collision: str) -> None:
     finally:
         env.close()
     assert ended.get(front) and ended.get(rear)
-    assert info[front]["reward_terms"]["collision"] == -env.cfg.reward.weight("collision")
+    assert info[front]["reward_terms"]["collision"] == -env.cfg.reward.weights.collision
     assert info[bystander]["reward_terms"]["collision"] == 0
     (c,) = info[front]["episode"]["collisions"].split(";") if on_collision == "end" else [None]
     if on_collision == "end":

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import cosim
-from cosim.config import ObservationConfig, RewardConfig, load_config
+from cosim.config import ObservationConfig, RewardConfig, RewardWeights, load_config
 from cosim.environment.reward import TERMS, StepChange, svo_rewards, term, utility_terms, weighted_utility
 from cosim.environment.velocity_map import RoadRaster, VelocityMapper
 from cosim.errors import ConfigError
@@ -90,24 +90,43 @@ def test_utility_terms_and_weights() -> None:
     weighted = weighted_utility(terms, cfg)
     assert list(weighted) == list(TERMS) == ["speed", "lane_change", "invalid_action", "accel", "collision", "merge"]
     assert weighted["speed"].tolist() == [2.0, 1.0, 0.0]
-    assert weighted["collision"].tolist() == [0.0, 0.0, -TERMS["collision"].weight]
+    assert weighted["collision"].tolist() == [0.0, 0.0, -RewardWeights().collision]
 
 
-def test_a_new_term_is_one_function_and_one_line() -> None:
-    @term("constant", 0.5)
-    def _constant(s: StepChange) -> np.ndarray:
-        return np.ones_like(s.progress)
+def test_the_terms_are_the_weights_fields() -> None:
+    # The registry and the config section name the same terms in the same order (the order of summation): a field
+    # without a function fails here, a function without a field already at registration (below).
+    assert list(TERMS) == list(RewardWeights.model_fields)
+    schema = RewardConfig.model_json_schema()["$defs"]["RewardWeights"]["properties"]
+    assert list(schema) == list(TERMS)
+    assert all(prop["description"].endswith("[-]") and "default" in prop for prop in schema.values())
+    assert {name: prop["default"] for name, prop in schema.items()} == {
+        "speed": 1.0, "lane_change": 0.05, "invalid_action": 0.1, "accel": 0.05, "collision": 5.0, "merge": 10.0}
 
+
+def test_a_new_term_is_its_function_and_its_field(monkeypatch: pytest.MonkeyPatch) -> None:
+    # A function without a field is refused when it is registered (at import, for a term in the reward module):
+    # it would have no weight, no config key and no line in the key reference. Refusing there, rather than only in
+    # the registry-equals-fields test above, stops a user's own term too, with the fix in the message.
+    with pytest.raises(ValueError, match="add the field constant to cosim.config.RewardWeights"):
+        @term("constant")
+        def _constant(s: StepChange) -> np.ndarray:
+            return np.ones_like(s.progress)
+    assert "constant" not in TERMS
+    with pytest.raises(ValueError, match="registered already"):
+        term("speed")
+    # With its field, the field's key weighs the function and every agent's infos report the term, weighted, on
+    # real SUMO: a registered term (its function swapped for a constant 1) stands in for a new one.
+    monkeypatch.setitem(TERMS, "speed", lambda s: np.ones_like(s.progress))
+    env = cosim.parallel_env("configs/smoke.yaml", {"reward.weights.speed": 2.0})
     try:
-        # Its weight is a config key, and every agent's infos report it, weighted, on real SUMO.
-        env = cosim.parallel_env("configs/smoke.yaml", {"reward.weights.constant": 2.0})
-        try:
-            env.reset(seed=3)
-            _, _, _, _, infos = env.step({a: 1 for a in env.agents})
-        finally:
-            env.close()
-        assert infos and all(info["reward_terms"]["constant"] == 2.0 for info in infos.values())
+        env.reset(seed=3)
+        _, _, _, _, infos = env.step({a: 1 for a in env.agents})
     finally:
-        del TERMS["constant"]
-    with pytest.raises(ConfigError, match="reward.weights.constant: unknown term"):
+        env.close()
+    assert infos and all(info["reward_terms"]["speed"] == 2.0 for info in infos.values())
+    # A key that names no term is an error naming it and listing the terms.
+    with pytest.raises(ConfigError) as caught:
         load_config("configs/smoke.yaml", {"reward.weights.constant": 2.0})
+    assert str(caught.value) == ("reward.weights.constant: unknown term; the terms: speed, lane_change, "
+                                 "invalid_action, accel, collision, merge")

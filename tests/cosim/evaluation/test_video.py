@@ -85,6 +85,11 @@ def test_the_episode_is_the_same_with_a_video(courteous) -> None:
     first, last = view.frames[0].snap.time, view.frames[-1].snap.time
     assert len(view.frames) == round((last - first) / 0.1) + 1 < 1 + 200
     assert [bool(f.snap.crashed.any()) for f in view.frames[-2:]] == [False, True]
+    # The legend names the crashed colour where a frame shows a wreck, and only there.
+    assert view.shows_crash and not courteous[0].shows_crash
+    for crashed in (True, False):
+        labels = [t.get_text() for t in video._FrameRenderer(env, (0.0, 200.0), "", crashed).fig.legends[0].texts]
+        assert ("crashed" in labels) is crashed and "AV" in labels
     states = _states(view)  # it waits at the lane's end, crawling forward now and then, and never gets in
     assert states[:3] == ["on the ramp", "on the acceleration lane", "stuck at the end of the acceleration lane"]
     assert "merged" not in states

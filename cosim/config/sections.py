@@ -1,203 +1,68 @@
-"""Typed experiment config: frozen pydantic models loaded from YAML, validated once at load.
+"""The config's sections: one frozen pydantic model per YAML section, and `Config`, the whole experiment.
 
-Contract: `load_config(path_or_dict_or_Config, overrides)` returns a `Config` or raises `ConfigError` with one
-line per problem, each naming the dotted key (`scenario.n_avs`, `train.lr`) and what is allowed (the bounds,
-the choices, or for an unknown key the section's keys), prefixed with where the value came from: the
-`--set KEY=VALUE` that gave it (an override given as a string; one given in a dict is code's, named by its key
-alone), else the file when loaded from one. A YAML file's `base:` chain and the overrides
-(`{"reward.phi": 0.785}` or `["reward.phi=0.785"]`, values read as YAML scalars) are merged into one raw dict
-that one `Config.model_validate` checks, so a value is judged the same wherever it came from. Unknown keys are
-errors; missing keys keep the defaults. Relative paths in `net` are resolved against the YAML file's folder (in
-an override or a dict: against the working directory). A file
-must be UTF-8 YAML with no key given twice in a mapping (`read_yaml`, for every YAML file a user may have
-edited); a file or override that is not is one line naming it and the position. Each field declares its
-default, bounds and unit (`[unit]` ending its description) in one place, which `Config.model_json_schema()`
-shows. Cross-field rules: a decision is a whole number of SUMO steps
-and the horizon a whole number of decisions; one agent's observation holds at most `MAX_OBSERVATION_VALUES`.
-Every section, `train:` and `evaluate:` included, is typed here; the module does not import torch, so rollout
-workers and the CLI read it cheaply.
-
-Seeds: `check_seed(name, seed, count)` is the one check of an episode seed (0 .. `SEED_MAX`, what SUMO's
-`--seed` takes), behind the seed keys, the command-line seed flags and `MergeEnv.reset(seed=...)`. Training
-episodes draw their seeds below `EVAL_SEED_START`, evaluation's default first seed.
+Contract: each field declares its default, bounds and unit (`[unit]` ending its description) in one place, which
+`Config.model_json_schema()` shows. Unknown keys are errors; missing keys keep the defaults. A section's
+`model_validate` raises `ConfigError` (worded by `cosim.config.errors`). Cross-field rules: a decision is a whole
+number of SUMO steps and the horizon a whole number of decisions; one agent's observation holds at most
+`MAX_OBSERVATION_VALUES`; a net-relative key and its absolute twin (`TWINS`) are never both given. Every section,
+`train:` and `evaluate:` and the reward terms' weights (`reward.weights`, one field per term of
+`cosim.environment.reward.TERMS`) included, is typed here; nothing here imports torch or the environment, so
+rollout workers and the CLI read it cheaply, and the environment builds on it, never the other way round.
 """
 
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from types import MappingProxyType
-from typing import Annotated, Any, ClassVar, Literal, Self, TypeVar, get_args
+from typing import Annotated, Any, ClassVar, Literal, Self
 
-import yaml
 from pydantic import (
-    AfterValidator,
-    AllowInfNan,
     BaseModel,
-    BeforeValidator,
     ConfigDict,
     Field,
-    PlainSerializer,
-    Strict,
     StrictBool,
     StrictStr,
     ValidationError,
-    ValidatorFunctionWrapHandler,
     WrapValidator,
     field_validator,
     model_validator,
 )
-from pydantic_core import PydanticCustomError
 
-from cosim.errors import ConfigError, SeedError
-
-# A stacked VelocityMap of the paper's size vs one that trains on a CPU; user keys override a preset.
-OBSERVATION_PRESETS: dict[str, dict[str, Any]] = {
-    "default": {"frames": 5, "height_px": 32, "width_px": 128, "length_m": 128.0, "width_m": 32.0},
-    "paper": {"frames": 10, "height_px": 64, "width_px": 512, "length_m": 256.0, "width_m": 32.0},
-}
-# Episode seeds from here on are evaluation's; training draws its seeds below, so the two never meet.
-EVAL_SEED_START = 10_000_000
-# Validation during training (`train.eval_every`) plays seeds from here: far above evaluation's, so that choosing a
-# run's best checkpoint never looks at the episodes it is then tested on.
-VALIDATION_SEED_START = 2_000_000_000
-# The largest episode seed: SUMO's --seed is a 32-bit signed integer (and numpy's SeedSequence, which the
-# scenario draws from, takes no negative one), so seeds are 0 .. SEED_MAX.
-SEED_MAX = 2**31 - 1
-# Values of one agent's stacked observation (frames x channels x height x width), at most: 12.8 times the
-# paper preset's 1,310,720 (10 x 4 x 64 x 512). At float32 that is 64 MiB per agent; each worker's VelocityMapper
-# keeps two stacks per AV (its ring of frames), and a training batch one per AV and decision step, so a larger
-# observation cannot train on one machine, and a mistyped size would otherwise fail in numpy's allocation.
-MAX_OBSERVATION_VALUES = 2**24
-# The bundled 2-lane merge with a long approach (sumo_net/dilemma), the net of every config that names none.
-DEFAULT_NET = Path(__file__).resolve().parents[1] / "sumo_net" / "dilemma" / "dilemma.net.xml"
-# The experiment a command runs without --config, found from any working directory.
-DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "default.yaml"
-# HVs that never yield to the merging vehicle and keep their lane: no cooperative lane changes or speed
-# adjustments, no lane changes for speed or to keep right (LC2013 / SL2015 parameters).
-NON_YIELDING: dict[str, float] = {"lcCooperative": 0.0, "lcSpeedGain": 0.0, "lcKeepRight": 0.0}
-# The lane-change parameters each model reads from a vType, as SUMO 1.28's parser and models take them
-# (SUMOVehicleParserHelper::parseLCParams; tests/cosim/sumo/test_lc_params.py checks them against the installed
-# SUMO). SUMO skips any other attribute without a word, so a misspelt name would change nothing silently.
-_LC2013_PARAMS = frozenset({
-    "lcStrategic", "lcCooperative", "lcSpeedGain", "lcKeepRight", "lcOpposite", "lcLookaheadLeft", "lcSpeedGainRight",
-    "lcMaxSpeedLatStanding", "lcMaxSpeedLatFactor", "lcMaxDistLatStanding", "lcAssertive", "lcSpeedGainLookahead",
-    "lcCooperativeRoundabout", "lcCooperativeSpeed", "lcOvertakeRight", "lcSigma", "lcKeepRightAcceptanceTime",
-    "lcOvertakeDeltaSpeedFactor", "lcStrategicLookahead", "lcSpeedGainRemainTime"})
-LC_PARAMS: dict[str, frozenset[str]] = {
-    "LC2013": _LC2013_PARAMS,
-    "SL2015": _LC2013_PARAMS | {"lcPushy", "lcPushyGap", "lcSublane", "lcImpatience", "lcTimeToImpatience",
-                                "lcAccelLat", "lcTurnAlignmentDistance", "lcLaneDiscipline"},
-}
-
-# Enumerated strings: the Literal is what a field accepts, the tuple what other modules list or look up.
-Channel = Literal["road", "avs", "hvs", "ego_merger"]
-AvDriver = Literal["env", "sumo"]
-Placement = Literal["window", "stream"]
-OnCollision = Literal["end", "remove"]
-Preset = Literal[tuple(OBSERVATION_PRESETS)]  # type: ignore[valid-type]
-Algo = Literal["a2c", "ppo"]
-OptimizerName = Literal["adam", "rmsprop"]
-Precision = Literal["auto", "float32", "bfloat16"]
-Shield = Literal["none", "sumo"]
-CHANNELS: tuple[str, ...] = get_args(Channel)
-AV_DRIVERS: tuple[str, ...] = get_args(AvDriver)  # who drives the AVs: the agents through the env, or SUMO
-PLACEMENTS: tuple[str, ...] = get_args(Placement)  # keys of cosim.sumo.scenario.PLACEMENTS
-ON_COLLISION: tuple[str, ...] = get_args(OnCollision)
-ALGOS: tuple[str, ...] = get_args(Algo)
-OPTIMIZER_NAMES: tuple[str, ...] = get_args(OptimizerName)  # keys of agents.losses.OPTIMIZERS
-PRECISIONS: tuple[str, ...] = get_args(Precision)
-SHIELDS: tuple[str, ...] = get_args(Shield)  # keys of cosim.sumo.session.AV_MODES
-
-
-def _problem(message: str, key: str = "") -> PydanticCustomError:
-    """A problem worded for `ConfigError`; `key`: the field a section's validator blames, below that section."""
-    return PydanticCustomError("cosim", "{message}", {"message": message, "key": key})
-
-
-def _no_bool(value: Any) -> Any:
-    # pydantic's lax float reads true as 1.0, which would hide a value put under the wrong key. Strings go on
-    # to it: YAML 1.1 reads 1e-4 (no dot) as a string.
-    if isinstance(value, bool):
-        raise _problem(f"expected a number, got {value!r}")
-    return value
-
-
-def _str_keys(value: Any) -> Any:
-    return {str(k): v for k, v in value.items()} if isinstance(value, Mapping) else value
-
-
-def _as_dict(value: Mapping[str, float]) -> dict[str, float]:
-    return dict(value)
-
-
-# An int key takes no float, bool or string: 2.5 or "3" there is a mistake, not something to round or parse.
-Int = Annotated[int, Strict()]
-Number = Annotated[float, BeforeValidator(_no_bool), AllowInfNan(False)]
-# Read-only, as the rest of a frozen config; serialized as a plain dict.
-NumberMap = Annotated[
-    Mapping[str, Number], BeforeValidator(_str_keys), AfterValidator(MappingProxyType), PlainSerializer(_as_dict)
-]
-# The bounds before the validator, so the JSON schema states them (pydantic leaves them raw after it).
-Angle = Annotated[float, AllowInfNan(False), Field(ge=-math.pi, le=math.pi), BeforeValidator(_no_bool)]
-
-
-def check_seed(name: str, seed: Any, count: int = 1) -> int:
-    """The one check of an episode seed, whether a config key, a command-line flag or `reset(seed=...)`: `seed`
-    as a plain int when it and the `count - 1` seeds after it lie in [0, SEED_MAX], else `SeedError` naming
-    `name`. A Python or numpy integer passes; a bool, a float or a string does not."""
-    problem = _seed_problem(seed, count)
-    if problem:
-        raise SeedError(f"{name}: {problem}")
-    return int(seed)
-
-
-def _seed_problem(seed: Any, count: int = 1) -> str | None:
-    last = SEED_MAX - count + 1
-    if isinstance(seed, numbers.Integral) and not isinstance(seed, bool) and 0 <= seed <= last:
-        return None
-    fit = f", so that the seeds of all {count} episodes fit" if count > 1 else ""
-    return f"expected an integer in [0, {last}]{fit} (SUMO's --seed is a 32-bit signed integer), got {_show(seed)}"
-
-
-def _seed(seed: int) -> int:
-    problem = _seed_problem(seed)
-    if problem:
-        raise _problem(problem)
-    return seed
-
-
-# A seed key: judged by the same check as a seed flag; the schema states the range.
-Seed = Annotated[Int, AfterValidator(_seed), Field(json_schema_extra={"minimum": 0, "maximum": SEED_MAX})]
-
-
-def _span(least: float | None = None, why: str = "") -> Any:
-    """A [low, high] pair with low <= high (and `least` <= low): the range a value is drawn from per episode."""
-
-    def shape(value: Any) -> Any:
-        if isinstance(value, list | tuple) and len(value) != 2:
-            raise _problem(f"expected [low, high], got {list(value)}")
-        return value
-
-    def order(pair: tuple[float, float]) -> tuple[float, float]:
-        lo, hi = pair
-        if not (lo <= hi and (least is None or least <= lo)):
-            rule = "low <= high" if least is None else f"{least:g} <= low <= high"
-            raise _problem(f"expected [low, high] with {rule}{why}, got {list(pair)}")
-        return pair
-
-    return Annotated[tuple[Number, Number], BeforeValidator(shape), AfterValidator(order)]
-
-
-Span = _span()
-NonNegativeSpan = _span(0.0)
-SpacingSpan = _span(1.0, " (below the equilibrium gap the stream brakes at once)")
-
-
-ShareSpan = _span(0.0)
-
+from cosim.config.errors import _error, _problem
+from cosim.config.types import (
+    CHANNELS,
+    DEFAULT_NET,
+    EVAL_SEED_START,
+    LC_PARAMS,
+    MAX_OBSERVATION_VALUES,
+    NON_YIELDING,
+    OBSERVATION_PRESETS,
+    SEED_MAX,
+    VALIDATION_SEED_START,
+    Algo,
+    Angle,
+    AvDriver,
+    Channel,
+    Int,
+    NonNegativeSpan,
+    Number,
+    NumberMap,
+    OnCollision,
+    OptimizerName,
+    Placement,
+    Precision,
+    Preset,
+    Seed,
+    ShareSpan,
+    Shield,
+    SpacingSpan,
+    Span,
+    _angles,
+    _device_problem,
+    _resolve,
+    _seed_problem,
+)
 
 # Net-relative keys and their absolute twins. Each group lists alternatives, each a tuple of keys that state
 # one quantity: the first alternative is net-relative (resolved per net by cosim.sumo.resolve) and holds the
@@ -259,29 +124,6 @@ def _clear_twins(section: str, into: dict[str, Any], over: Mapping[str, Any]) ->
                         for k in other:
                             into.pop(k, None)
 
-
-def _angles(value: Any, handler: ValidatorFunctionWrapHandler) -> Any:
-    # One line for the field instead of pydantic's one per member of the union.
-    try:
-        return handler(value)
-    except ValidationError as exc:
-        if any(e["type"] in ("greater_than_equal", "less_than_equal") for e in exc.errors()):
-            raise _problem(f"expected an angle in radians within [-pi, pi], got {value!r}") from None
-        raise _problem(f"expected a number or a list of numbers, got {value!r}") from None
-
-
-def _device_problem(device: str) -> str | None:
-    kind, _, index = device.partition(":")
-    if kind not in ("cpu", "cuda") or (index and (kind != "cuda" or not index.isdigit())):
-        return f"expected cpu, cuda or cuda:N, got {device!r}"
-    return None
-
-
-def check_device(device: str, where: str) -> None:
-    """Accept cpu, cuda and cuda:N (`ConfigError` naming `where` otherwise); availability is the learner's."""
-    problem = _device_problem(device)
-    if problem:
-        raise ConfigError(f"{where}: {problem}")
 
 
 class _Section(BaseModel):
@@ -630,32 +472,43 @@ class DemandConfig(_Section):
         return self
 
 
+class RewardWeights(_Section):
+    """The weight of each named utility term: one field per term of `cosim.environment.reward.TERMS`, which
+    registers the term's function under the field's name, in this order (the order of summation). A term's value
+    per vehicle and step is unweighted, its sign its own (a penalty's is negative), so a weight is >= 0; 0 turns
+    the term off."""
+
+    speed: Number = Field(1.0, ge=0, description="progress / (AV max speed x decision period), in [0, 1] [-]")
+    lane_change: Number = Field(0.05, ge=0, description="-1 on the step an AV changes lane [-]")
+    invalid_action: Number = Field(
+        0.1, ge=0, description="-1 on the step an AV asks for a lane change toward no through lane [-]")
+    accel: Number = Field(
+        0.05, ge=0, description="-|speed change| / (AV accel x decision period), for every vehicle, so forcing "
+        "humans to brake costs the social part [-]")
+    # -5 as in the authors' follow-up code.
+    collision: Number = Field(5.0, ge=0, description="-1 for a vehicle that crashed on the step [-]")
+    # +10 as in the authors' follow-up code. With +2, letting the merging vehicle in lowered the guide AV's own
+    # discounted return at phi = pi/4 (courteous 41.5 vs scripted 42.3 over 60 episodes); with +10 it raises it
+    # (45.3 vs 42.8). Against SUMO-driven AVs, though, gap-opening ones earn no more with +10, so the default
+    # scenario sets 50 (configs/default.yaml, results/calibration/merge_weight.md).
+    merge: Number = Field(10.0, ge=0, description="+1 for the merging vehicle on the step it merges [-]")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _known_terms(cls, data: Any) -> Any:
+        # Worded as a term rather than pydantic's unknown key: the terms are the reward module's registry.
+        if isinstance(data, Mapping):
+            unknown = [str(key) for key in data if key not in cls.model_fields]
+            if unknown:
+                raise _problem(f"unknown term; the terms: {', '.join(cls.model_fields)}", unknown[0])
+        return data
+
+
 class RewardConfig(_Section):
     phi: Annotated[Angle | tuple[Angle, ...], WrapValidator(_angles)] = Field(
         0.0, description="SVO angle, one for all AVs or one per AV: 0 egoistic, pi/4 altruistic, pi/2 fully [rad]")
-    weights: NumberMap = Field(
-        default_factory=dict,
-        description="weights of the named utility terms (cosim.environment.reward.TERMS); unlisted terms keep "
-        "their default")
-
-    @field_validator("weights")
-    @classmethod
-    def _known_terms(cls, weights: Mapping[str, float]) -> Mapping[str, float]:
-        unknown = sorted(set(weights) - set(_terms()))
-        if unknown:
-            raise _problem(f"unknown term; expected one of {sorted(_terms())}", unknown[0])
-        return weights
-
-    def weight(self, term: str) -> float:
-        return float(self.weights.get(term, _terms()[term].weight))
-
-
-def _terms() -> Mapping[str, Any]:
-    # The reward module owns the term names (a term is registered beside its function); the config, which the
-    # environment builds on, looks them up only when it judges weights, so neither module imports the other.
-    from cosim.environment.reward import TERMS
-
-    return TERMS
+    weights: RewardWeights = Field(
+        default_factory=RewardWeights, description="the utility terms' weights; unlisted terms keep their default")
 
 
 class TrainConfig(_Section):
@@ -799,283 +652,11 @@ class Config(_Section):
 
     def to_dict(self) -> dict[str, Any]:
         """A plain dict (YAML- and JSON-ready) that `load_config` turns back into an equal config (paths stay
-        resolved). `train` and `evaluate` hold only the keys that were given: what config hashes and a resumed
-        run's config comparison saw before these sections were typed (a run's config.yaml writes its whole
-        `train` section itself)."""
+        resolved). `train`, `evaluate` and `reward.weights` hold only the keys that were given: what config hashes
+        and a resumed run's config comparison saw before these sections were typed (a run's config.yaml writes its
+        whole `train` section itself)."""
         out = self.model_dump(mode="json")
         for name in ("train", "evaluate"):
             out[name] = getattr(self, name).model_dump(mode="json", exclude_unset=True)
+        out["reward"]["weights"] = self.reward.weights.model_dump(mode="json", exclude_unset=True)
         return out
-
-
-_T = TypeVar("_T")
-
-
-def parse_section(cls: type[_T], data: Any, where: str) -> _T:
-    """Validate one section (a mapping; None: all defaults; an instance passes) into the model `cls`; problems
-    raise `ConfigError` naming `where.key`."""
-    if isinstance(data, cls):
-        return data
-    if not issubclass(cls, _Section):
-        raise TypeError(f"parse_section: {cls!r} is not a config section model")
-    return cls.model_validate({} if data is None else data, context={"where": where})
-
-
-def load_config(
-    config: str | Path | Mapping[str, Any] | Config | None = None,
-    overrides: Mapping[str, Any] | Sequence[str] | None = None,
-) -> Config:
-    """Load and validate a config from a YAML path, a dict, or an existing `Config`, applying overrides."""
-    source = None
-    if config is None:
-        data: dict[str, Any] = {}
-    elif isinstance(config, Config):
-        data, source = config.to_dict(), config.source
-    elif isinstance(config, Mapping):
-        data = _plain(config)
-    else:
-        path = Path(config)
-        data, source = _read_yaml(path), str(path)
-    parsed = _parse_overrides(overrides)
-    # Where each overridden value came from, for the error lines: a string is the command line's --set, a
-    # mapping's value was set in code (no input of the user's to name, and not the file's).
-    given = ({key: "" for key in parsed} if isinstance(overrides, Mapping)
-             else {item.partition("=")[0].strip(): f"--set {item.strip()}" for item in overrides or ()})
-    for section in {key.partition(".")[0] for key in parsed}:  # overrides replace the files' twins (TWINS)
-        if isinstance(data.get(section), dict):
-            _clear_twins(section, data[section], {k.partition(".")[2]: v for k, v in parsed.items()
-                                                  if k.partition(".")[0] == section})
-    for key, value in parsed.items():
-        _set_dotted(data, key, value)
-    data["source"] = source
-    return Config.model_validate(data, context={"source": source, "overrides": given})
-
-
-def _plain(value: Any) -> Any:
-    """A copy of nested mappings and sequences as dicts and lists, which overrides can then be set in."""
-    if isinstance(value, Mapping):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_plain(v) for v in value]
-    return value
-
-
-def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
-    """A YAML config as a dict; `base: other.yaml` (relative to this file) is read first and this file's
-    keys are merged over it, so experiments state only what differs."""
-    if not path.is_file():
-        raise ConfigError(f"config file {path}: not found")
-    loaded = read_yaml(path)
-    if loaded is not None and not isinstance(loaded, dict):
-        raise ConfigError(f"config file {path}: expected a mapping of sections at top level")
-    data = loaded or {}
-    net = data.get("net")
-    if isinstance(net, dict):  # paths in a file are relative to that file
-        for key in ("file", "description"):
-            if isinstance(net.get(key), str):
-                net[key] = str(_resolve(net[key], path.resolve().parent))
-    base = data.pop("base", None)
-    if base is None:
-        return data
-    base_path = (path.resolve().parent / str(base)).resolve()
-    if base_path in seen:
-        raise ConfigError(f"config file {path}: base {base} includes itself")
-    merged = _read_yaml(base_path, (*seen, path.resolve()))
-    _merge(merged, data)
-    return merged
-
-
-def _merge(into: dict[str, Any], over: Mapping[str, Any], section: str = "") -> None:
-    for key, value in over.items():
-        if isinstance(value, Mapping) and isinstance(into.get(key), dict):
-            if not section:  # a later layer's twin replaces the earlier layer's (TWINS)
-                _clear_twins(key, into[key], value)
-            _merge(into[key], value, key)
-        else:
-            into[key] = value
-
-
-def _resolve(path: str, base: Path) -> Path:
-    p = Path(path).expanduser()
-    return p if p.is_absolute() else (base / p).resolve()
-
-
-def _parse_overrides(overrides: Mapping[str, Any] | Sequence[str] | None) -> dict[str, Any]:
-    if overrides is None:
-        return {}
-    if isinstance(overrides, Mapping):
-        return dict(overrides)
-    parsed = {}
-    for item in overrides:
-        key, sep, raw = item.partition("=")
-        if not sep or not key:
-            raise ConfigError(f"override {item!r}: expected KEY=VALUE, e.g. reward.phi=0.785")
-        try:
-            parsed[key.strip()] = yaml.load(raw, Loader=_ConfigLoader)
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"override {key.strip()}: {raw!r} is not a YAML value: "
-                              f"{yaml_problem(exc, lines=False)}") from None
-    return parsed
-
-
-def read_yaml(path: Path) -> Any:
-    """A YAML file's content (None for an empty one), read as config files are: UTF-8, no key given twice in a
-    mapping; otherwise `ConfigError` naming the file and the position, on one line."""
-    raw = path.read_bytes()
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        line = raw[: exc.start].count(b"\n") + 1
-        raise ConfigError(f"config file {path}: not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line})") from None
-    try:
-        return yaml.load(text, Loader=_ConfigLoader)
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {path}: not valid YAML: {yaml_problem(exc)}") from None
-
-
-class _ConfigLoader(yaml.SafeLoader):
-    """PyYAML's safe loader, refusing a key given twice in one mapping: YAML requires keys to be unique, and
-    PyYAML would keep the last silently, losing the first (a whole `sim:` section, say) unseen."""
-
-    def compose_document(self) -> yaml.Node:
-        node = super().compose_document()
-        _check_unique_keys(node, "", set())
-        return node
-
-
-def _check_unique_keys(node: yaml.Node, where: str, done: set[int]) -> None:
-    if id(node) in done:  # an alias: checked where its anchor is (and a recursive one would never end)
-        return
-    done.add(id(node))
-    children: list[tuple[str, yaml.Node]] = []
-    if isinstance(node, yaml.MappingNode):
-        first: dict[tuple[str, Any], yaml.Node] = {}
-        for key, value in node.value:
-            # `<<: *base` merges a mapping whose keys this one overrides on purpose.
-            if key.tag != "tag:yaml.org,2002:merge" and isinstance(key, yaml.ScalarNode):
-                dotted = f"{where}.{key.value}" if where else str(key.value)
-                earlier = first.setdefault((key.tag, key.value), key)
-                if earlier is not key:
-                    raise yaml.constructor.ConstructorError(
-                        problem=f"key {dotted} given twice (first on line {earlier.start_mark.line + 1})",
-                        problem_mark=key.start_mark)
-                children.append((dotted, value))
-            else:
-                children.append((where, value))
-    elif isinstance(node, yaml.SequenceNode):
-        children = [(f"{where}[{i}]", item) for i, item in enumerate(node.value)]
-    for dotted, child in children:
-        _check_unique_keys(child, dotted, done)
-
-
-def yaml_problem(exc: yaml.YAMLError, lines: bool = True) -> str:
-    """PyYAML's message on one line (its own spans several, with a caret under the spot): where, what, and
-    what it was reading."""
-    if not isinstance(exc, yaml.MarkedYAMLError) or exc.problem_mark is None:
-        return " ".join(str(exc).split())
-
-    def at(mark: Any) -> str:
-        return f"line {mark.line + 1}, column {mark.column + 1}" if lines else f"column {mark.column + 1}"
-
-    text = f"{at(exc.problem_mark)}: {exc.problem}"
-    if exc.context:
-        text += f" ({exc.context}" + (f" from {at(exc.context_mark)})" if exc.context_mark else ")")
-    return text
-
-
-def _set_dotted(data: dict[str, Any], key: str, value: Any) -> None:
-    """Put an override into the raw dict. It replaces its key whole: `hv.lc_params={}` empties the mapping,
-    where a `base:` file's mapping is merged into key by key."""
-    node = data
-    *parents, leaf = key.split(".")
-    for i, part in enumerate(parents):
-        child = node.setdefault(part, {})
-        if not isinstance(child, dict):
-            raise ConfigError(f"override {key}: {'.'.join(parents[: i + 1])} is not a section")
-        node = child
-    node[leaf] = value
-
-
-# How a problem's message words what pydantic's error type asks for.
-_EXPECTED = {
-    "int_type": "an integer", "int_parsing": "an integer", "int_from_float": "an integer",
-    "float_type": "a number", "float_parsing": "a number", "finite_number": "a finite number",
-    "bool_type": "true or false", "bool_parsing": "true or false", "string_type": "a string",
-    "tuple_type": "a list", "list_type": "a list", "dict_type": "a mapping", "mapping_type": "a mapping",
-    "model_type": "a mapping", "model_attributes_type": "a mapping",
-}
-_BOUNDS = {"greater_than": (">", "gt"), "greater_than_equal": (">=", "ge"),
-           "less_than": ("<", "lt"), "less_than_equal": ("<=", "le")}
-
-
-def _error(exc: ValidationError, root: type[BaseModel], where: str, source: str | None = None,
-           overrides: Mapping[str, str] = MappingProxyType({})) -> ConfigError:
-    """One line per problem, naming the dotted key below `where` and where its value came from (`_origin`)."""
-    lines = []
-    for err in exc.errors(include_url=False):
-        loc, kind, ctx = list(err["loc"]), err["type"], err.get("ctx") or {}
-        value = err.get("input")
-        got, prefix = _show(value), ""
-        if kind == "cosim":
-            if ctx.get("key"):
-                loc.append(ctx["key"])
-            text = ctx["message"]
-        elif kind == "extra_forbidden":
-            allowed = _keys_at(root, loc[:-1])
-            prefix, text = "config key ", "unknown key" + (f"; allowed: {', '.join(allowed)}" if allowed else "")
-        elif isinstance(value, float) and not math.isfinite(value):  # pydantic checks bounds first
-            text = f"expected a finite number, got {got}"
-        elif kind in _BOUNDS:
-            op, bound = _BOUNDS[kind]
-            text = f"must be {op} {_number(ctx[bound])}, got {got}"
-        elif kind == "literal_error":
-            text = f"expected {ctx['expected']}, got {got}"
-        elif kind in _EXPECTED:
-            text = f"expected {_EXPECTED[kind]}, got {got}"
-        else:
-            text = f"{err['msg']}, got {got}"
-        key = _dotted(where, loc)
-        lines.append(_origin(key, f"{prefix}{key or 'config'}: {text}", text, source, overrides))
-    return ConfigError("\n".join(dict.fromkeys(lines)))
-
-
-def _origin(key: str, line: str, text: str, source: str | None, overrides: Mapping[str, str]) -> str:
-    """The problem `line` (`text` about `key`) prefixed with where the value came from: the `--set` that gave the
-    key (its problem alone follows: `--set sim.horizon=-1: must be > 0, got -1`) or a section above it; nothing
-    for a value set in code; else the file `source`, with the `--set`s inside a section whose own rule is broken
-    (the values judged together came from both)."""
-    owner = next((k for k in overrides if key == k or key.startswith((f"{k}.", f"{k}["))), None)
-    if owner is not None:
-        label = overrides[owner]
-        return line if not label else f"{label}: {text}" if key == owner else f"{label}: {line}"
-    inside = [label for k, label in overrides.items() if label and key and k.startswith(f"{key}.")]
-    origin = " with ".join(filter(None, [source, ", ".join(inside)]))
-    return f"{origin}: {line}" if origin else line
-
-
-def _dotted(where: str, loc: Sequence[str | int]) -> str:
-    path = where
-    for part in loc:
-        path += f"[{part}]" if isinstance(part, int) else f"{'.' if path else ''}{part}"
-    return path
-
-
-def _keys_at(root: type[BaseModel], loc: Sequence[str | int]) -> list[str]:
-    """The keys of the section at `loc` below `root` (none where `loc` leads to no section model)."""
-    model: Any = root
-    for part in loc:
-        field = model.model_fields.get(part) if isinstance(part, str) else None
-        model = field.annotation if field is not None else None
-        if not (isinstance(model, type) and issubclass(model, BaseModel)):
-            return []
-    return [k for k in model.model_fields if k != "source"]
-
-
-def _number(bound: Any) -> str:
-    # A bound on a float field comes back as a float: "> 0", not "> 0.0".
-    return f"{bound:g}" if isinstance(bound, float) else str(bound)
-
-
-def _show(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
