@@ -32,7 +32,8 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -167,7 +168,7 @@ def _check_memory(cfg: Config, tc: TrainConfig, backend: Backend) -> None:
     obs = cfg.observation
     values = obs.frames * len(obs.channels) * obs.height_px * obs.width_px
     steps = max(1, round(cfg.sim.horizon / cfg.sim.decision_period))
-    batch = steps * tc.workers * cfg.scenario.n_avs * values * (1 if obs.dtype == "uint8" else 4)
+    batch = steps * tc.workers * cfg.scenario.n_avs * values * np.dtype(obs.dtype).itemsize
     parts = [(f"one update's batch ({steps:,} decision steps x {tc.workers} workers x {cfg.scenario.n_avs} AVs x "
               f"{values:,} observation values)", batch)]
     if backend.name == "local":
@@ -211,7 +212,8 @@ def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: i
         run.failed = True
         raise
     finally:
-        run.close()
+        with StopRequest.held(replay=False):
+            run.close()
     return run.result()
 
 
@@ -233,6 +235,31 @@ class StopRequest:
     def __exit__(self, *exc: object) -> None:
         for sig, handler in self.previous.items():
             signal.signal(sig, handler)
+
+    @staticmethod
+    @contextmanager
+    def held(replay: bool = True) -> Iterator[None]:
+        """SIGINT / SIGTERM held back while a checkpoint is written (cut by KeyboardInterrupt, torch's zip writer fails
+        with a traceback of its own and the write is lost): with `replay`, sent again once it is whole, to whatever
+        handles them then; without, said and ignored (the run is stopping already)."""
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+        got: list[int] = []
+
+        def hold(signum: int, frame: object) -> None:
+            got.append(signum)
+            if not replay:
+                log.warning("%s: writing the final checkpoint, then stopping", signal.Signals(signum).name)
+
+        previous = {sig: signal.signal(sig, hold) for sig in StopRequest.SIGNALS}
+        try:
+            yield
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        for sig in got if replay else ():
+            signal.raise_signal(sig)
 
     def _handle(self, signum: int, frame: object) -> None:
         if self.requested:
@@ -501,7 +528,8 @@ class _Run:
         self.logger.validation(row)
         if best:
             self.best = row
-            save_policy(self.out_dir / BEST_NAME, self.payload(), validation=row)
+            with StopRequest.held():
+                save_policy(self.out_dir / BEST_NAME, self.payload(), validation=row)
         log.info("validation at episode %d (%d greedy episodes, %.0f s): crash %.1f%% [%.1f, %.1f], merge %.1f%% "
                  "[%.1f, %.1f], conflicts %.2f per episode, return %.1f%s", c["episodes"], fig["episodes_validated"],
                  spent, fig["crash"], fig["crash_low"], fig["crash_high"], fig["merge"], fig["merge_low"],
@@ -519,7 +547,8 @@ class _Run:
 
     def checkpoint(self, payload: dict[str, Any] | None = None) -> None:
         payload = payload or self.payload()
-        save_checkpoint(self.ckpt_path, payload)
+        with StopRequest.held():
+            save_checkpoint(self.ckpt_path, payload)
         self.checkpointed = {k: int(payload["counters"][k]) for k in ("updates", "episodes")}
 
     def close(self) -> None:

@@ -324,3 +324,23 @@ def test_init_from_starts_a_new_run_from_a_policys_weights_with_a_fresh_optimize
     with pytest.raises(CheckpointError, match="incompatible feature_dim"):
         train(cfg_with(feature_dim=16), tmp_path / "third", workers=1, episodes=1, progress=False,
               env_factory=make_fake_env(n_agents=2), init_from=tmp_path / "half.pt")
+
+
+def test_a_signal_during_a_checkpoint_write_waits_until_the_write_is_whole(caplog: pytest.LogCaptureFixture) -> None:
+    # Cut by KeyboardInterrupt, torch's zip writer raised a RuntimeError of its own: a traceback, exit 1 (seen in CI
+    # when a second Ctrl-C landed in the final checkpoint's write).
+    steps = []
+    with train_module.StopRequest() as stop:
+        with train_module.StopRequest.held():
+            signal.raise_signal(signal.SIGINT)
+            steps.append("written")  # the write goes on
+            assert not stop.requested
+        assert stop.requested  # the signal, replayed once the write is whole, asks for the stop
+        with pytest.raises(KeyboardInterrupt), train_module.StopRequest.held():
+            signal.raise_signal(signal.SIGINT)  # a second one: stop at once, but after the write
+            steps.append("written again")
+    with train_module.StopRequest.held(replay=False):  # the final checkpoint: the run is stopping already
+        signal.raise_signal(signal.SIGINT)
+        steps.append("final")
+    assert steps == ["written", "written again", "final"]
+    assert "SIGINT: writing the final checkpoint, then stopping" in caplog.text
