@@ -27,6 +27,7 @@ import copy
 import functools
 import json
 import logging
+import math
 import random
 import signal
 import sys
@@ -166,7 +167,7 @@ def _check_memory(cfg: Config, tc: TrainConfig, backend: Backend) -> None:
     """A run whose batch and (local) worker processes need more memory than this machine has is refused before any
     of it is allocated or started."""
     obs = cfg.observation
-    values = obs.frames * len(obs.channels) * obs.height_px * obs.width_px
+    values = math.prod(obs.shape)
     steps = max(1, round(cfg.sim.horizon / cfg.sim.decision_period))
     batch = steps * tc.workers * cfg.scenario.n_avs * values * np.dtype(obs.dtype).itemsize
     parts = [(f"one update's batch ({steps:,} decision steps x {tc.workers} workers x {cfg.scenario.n_avs} AVs x "

@@ -34,7 +34,7 @@ log = logging.getLogger("bench_demand")
 def untrained_checkpoint(cfg, folder: Path) -> Path:  # noqa: ANN001 - a Config
     """The default network with its initial weights, saved as a run's checkpoint: the same work as a trained one."""
     o = cfg.observation
-    shape = (o.frames, len(o.channels), o.height_px, o.width_px)
+    shape = o.shape
     net = ActorCritic(shape, 5, feature_dim=cfg.train.feature_dim, head_hidden=cfg.train.head_hidden)
     spec = {"agents": ["av_0"], "obs_shape": list(shape), "obs_dtype": o.dtype, "n_actions": 5, "shared_policy": True,
             "feature_dim": cfg.train.feature_dim, "head_hidden": cfg.train.head_hidden}

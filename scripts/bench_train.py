@@ -81,8 +81,7 @@ def network_seconds(cfg: Config, workers: int, batch: float, device: str, reps: 
     """The textbook passes of one agent-sample (module doc) for `cfg`'s network and algorithm, on all cores, at
     `batch` samples per update, in the precision training chooses for it (train.precision)."""
     tc = cfg.train
-    o = cfg.observation
-    n_agents, shape = cfg.scenario.n_avs, (o.frames, len(o.channels), o.height_px, o.width_px)
+    n_agents, shape = cfg.scenario.n_avs, cfg.observation.shape
     torch.set_num_threads(CORES)
     torch.manual_seed(0)
     policy = MultiAgentPolicy(n_agents, shape, 5, tc, device)

@@ -415,10 +415,15 @@ class ObservationConfig(_Section):
             raise _problem(f"expected distinct names from {list(CHANNELS)}, got {list(channels)}")
         return channels
 
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        """One agent's stacked observation: (frames, channels, height_px, width_px)."""
+        return (self.frames, len(self.channels), self.height_px, self.width_px)  # type: ignore[return-value]
+
     @model_validator(mode="after")
     def _fits(self) -> Self:
-        sizes = (self.frames, len(self.channels), self.height_px, self.width_px)
-        values = math.prod(sizes)  # type: ignore[arg-type]  # the preset has set every size
+        sizes = self.shape  # the preset has set every size
+        values = math.prod(sizes)
         if values > MAX_OBSERVATION_VALUES:
             paper = OBSERVATION_PRESETS["paper"]
             raise _problem(

@@ -108,8 +108,8 @@ class VelocityMapper:
                              "(cosim.sumo.resolve; an env does)")
         self.cfg = cfg
         self.n_agents = n_agents
-        f, c, h, w = cfg.frames, len(cfg.channels), cfg.height_px, cfg.width_px
-        self.shape: tuple[int, int, int, int] = (f, c, h, w)
+        self.shape: tuple[int, int, int, int] = cfg.shape
+        f, c, h, w = self.shape
         self.dtype: np.dtype = np.dtype(cfg.dtype)
         self.high: float = 255.0 if self.dtype == np.uint8 else 1.0
         self._px_l = cfg.length_m / w  # [m] pixel size along the heading
@@ -206,7 +206,7 @@ class VelocityMapper:
         rows = np.asarray(ego_rows, dtype=np.int64).reshape(-1)
         present = rows >= 0
         u, lat = self._ego_frame(snap, rows)
-        _, _, h, w = self.shape
+        f, c, h, w = self.shape
         wi = np.floor((u + self._rear) / self._px_l)
         hi = np.floor((self.cfg.width_m / 2 - lat) / self._px_w)
         seen = (wi >= 0) & (wi < w) & (hi >= 0) & (hi < h) & present[:, None]

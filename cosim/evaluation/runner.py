@@ -220,10 +220,6 @@ class Runner:
         self.env.close()
 
 
-def _make_env(config: dict[str, Any]) -> MergeEnv | DemandEnv:
-    return parallel_env(config)
-
-
 _RUNNER: Runner | None = None  # a worker process's runner, built at its first episode
 
 
@@ -251,14 +247,14 @@ def run_episodes(job: Job, seeds: Sequence[int], workers: int = 1,
     `max_restarts` failures over the evaluation; one that fails again on its fresh worker stops the evaluation
     (`EpisodeError`): the same seed failing twice is the episode's own fault."""
     if workers <= 1 or len(seeds) <= 1:
-        runner = Runner(job, _make_env(job.config))
+        runner = Runner(job, parallel_env(job.config))
         try:
             for seed in seeds:
                 yield runner.run(seed)
         finally:
             runner.close()
         return
-    pool = WorkerPool(functools.partial(_make_env, job.config), min(workers, len(seeds)), max_restarts,
+    pool = WorkerPool(functools.partial(parallel_env, job.config), min(workers, len(seeds)), max_restarts,
                       timeout=load_config(job.config).evaluate.step_timeout, timeout_key="evaluate.step_timeout",
                       restarts_key="an evaluation's max_restarts")
     try:
@@ -316,7 +312,8 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
     before = FolderState.capture(out_dir)
     csv_path = out_dir / "episodes.csv"
     try:
-        Runner(job, _make_env(job.config)).close()  # bad nets and checkpoints fail here, before the folder is claimed
+        # Bad nets and checkpoints fail here, before the folder is claimed.
+        Runner(job, parallel_env(job.config)).close()
         lock.acquire()
         _claim(out_dir, meta, cfg)
         writer = AppendCsv(csv_path)  # first: it drops a half-written last row

@@ -104,8 +104,7 @@ def resolve_demand(cfg: Config, net: Net) -> Demand:
         rate = d.av_penetration * mainline * lanes / 3600.0
     crossing = net.highway_length / (0.5 * net.speed_limit)  # [s] through the net at half the limit
     slots = min(d.max_avs_present or int(math.ceil(3.0 * rate * crossing)) + 4, max_avs)
-    o = cfg.observation
-    values = o.frames * len(o.channels) * o.height_px * o.width_px  # type: ignore[operator]  # resolved sizes
+    values = math.prod(cfg.observation.shape)
     if slots * values > MAX_SLOT_VALUES:
         fit = MAX_SLOT_VALUES // values
         key = "demand.max_avs_present" if d.max_avs_present else "demand (its AVs present at once)"
