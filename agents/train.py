@@ -67,7 +67,7 @@ from cosim.config import EVAL_SEED_START, Config, SafetyConfig, read_yaml
 from cosim.errors import ConfigError, EpisodeError, NetError
 from cosim.files import FolderLock, FolderState, atomic_write_text, stale_temporaries
 from cosim.progress import Heartbeat
-from cosim.sumo.setting import setting
+from cosim.sumo.setting import Setting
 from cosim.workers import WORKER_MIB, EnvFactory, check_memory
 
 log = logging.getLogger(__name__)
@@ -325,7 +325,7 @@ class _Run:
                 logged_every = int(payload.get("train", {}).get("log_every", tc.log_every))
                 for gap in log_gaps(out_dir, int(counters["updates"]), int(counters["episodes"]), logged_every):
                     log.warning("%s", gap)
-            where = setting(cfg, overrides) if env_factory is None else None  # the merge env's: its net
+            where = Setting.of(cfg).record(overrides) if env_factory is None else None  # the merge env's: its net
             if where is not None and resume:
                 _check_net_unchanged(out_dir / NET_RECORD, where)
             if where is not None and start is not None:

@@ -1,15 +1,15 @@
 """What the episode env and the demand env share: one SUMO, one resolved config, and `step` as a template of hooks.
 
-Contract: `SumoEnv(config, render_mode, gui)` resolves the config on its net (`cosim.sumo.resolve.on_net`: `cfg`,
-`net`, `zone`, `resolution_notes`) and holds the SUMO session; a subclass sets `possible_agents`, its `mapper`
-(`_spaces` makes the observation space from it), `max_steps` and `ROUTE_FILE`, and writes its own `reset`, which
-starts with `_begin_reset(seed)` (the closed-env guard, the seed checked or the next of the sequence, the temporary
-folder). `step(actions)` is the template, as HighwayEnv's `AbstractEnv.step` is: `checked_actions` (an
-`ActionError` for anything but an action of every live agent) -> `_act` (meta-actions into target speeds and lane
-changes, shared) -> `_simulate` (one decision period, shared) -> `_observe` -> `_reward` -> `_end`; the last three
-are the subclass's. Target speeds are kept per agent name (`_target`); `action_masks()` reads them. `close()`
-releases the process's SUMO slot and the temporary folder; a closed env stays closed (`reset` and `step` raise
-a RuntimeError that says so).
+Contract: `SumoEnv(config, render_mode, gui)` resolves the config on its net once (`setting`,
+`cosim.sumo.setting.Setting`, and from it `cfg`, `net`, `resolution_notes`; `zone`) and holds the SUMO session; a
+subclass sets `possible_agents`, its `mapper` (`_spaces` makes the observation space from it), `max_steps` and
+`ROUTE_FILE`, and writes its own `reset`, which starts with `_begin_reset(seed)` (the closed-env guard, the seed checked
+or the next of the sequence, the temporary folder). `step(actions)` is the template, as HighwayEnv's `AbstractEnv.step`
+is: `checked_actions` (an `ActionError` for anything but an action of every live agent) -> `_act` (meta-actions into
+target speeds and lane changes, shared) -> `_simulate` (one decision period, shared) -> `_observe` -> `_reward` ->
+`_end`; the last three are the subclass's. Target speeds are kept per agent name (`_target`); `action_masks()` reads
+them. `close()` releases the process's SUMO slot and the temporary folder; a closed env stays closed (`reset` and `step`
+raise a RuntimeError that says so).
 """
 
 from __future__ import annotations
@@ -29,9 +29,9 @@ from cosim.environment.control import N_ACTIONS, agent_masks, checked_actions, d
 from cosim.environment.episode import MergeZone
 from cosim.environment.velocity_map import VelocityMapper
 from cosim.scratch import run_folder
-from cosim.sumo.resolve import on_net
 from cosim.sumo.scenario import kind_of
 from cosim.sumo.session import Gui, SumoSession
+from cosim.sumo.setting import Setting
 from cosim.sumo.snapshot import Snapshot
 
 Step = tuple[dict, dict, dict, dict, dict]  # observations, rewards, terminations, truncations, infos
@@ -47,9 +47,9 @@ class SumoEnv(ParallelEnv):
             raise ValueError(f"render_mode: expected None{''.join(f' or {m!r}' for m in modes)}, got {render_mode!r}")
         self.render_mode = render_mode
         # Everything below reads the config resolved on this net: net-relative keys in absolute units.
-        self.net, resolved = on_net(config)
-        self.cfg = config = resolved.config
-        self.resolution_notes = resolved.notes
+        self.setting = Setting.of(config, warn=True)
+        self.net, self.cfg, self.resolution_notes = self.setting.net, self.setting.config, self.setting.notes
+        config = self.cfg
         self.road, self.chainage = self.net.road, self.net.chainage
         self.zone = MergeZone.from_net(self.net)
         self.agents: list[str] = []

@@ -34,7 +34,7 @@ from cosim.environment.reward import StepChange, svo_rewards, utility_terms, wei
 from cosim.environment.velocity_map import VelocityMapper, rasterize_road
 from cosim.errors import ConfigError
 from cosim.files import atomic_path
-from cosim.sumo.demand import plan_demand, resolve_demand, write_demand
+from cosim.sumo.demand import plan_demand, write_demand
 from cosim.sumo.flow_outputs import FlowOutputs, flow_output_args, flow_sites, read_flow_outputs
 from cosim.sumo.scenario import av_id, kind_of
 from cosim.sumo.session import Gui
@@ -50,7 +50,8 @@ class DemandEnv(SumoEnv):
         config = self.cfg
         if isinstance(config.reward.phi, tuple):
             raise ConfigError("reward.phi: one angle for every AV in demand mode (AVs come and go), got a list")
-        self.demand = resolve_demand(config, self.net)
+        assert self.setting.demand is not None  # a demand config: the factory's choice
+        self.demand = self.setting.demand
         self.sites = flow_sites(self.net, config.demand.influence_area)
         self.possible_agents = [av_id(i) for i in range(self.demand.max_avs)]
         self._spaces(VelocityMapper(config.observation, rasterize_road(self.road.lane_shapes()),
@@ -63,7 +64,7 @@ class DemandEnv(SumoEnv):
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         seed = self._begin_reset(seed)
-        write_demand(plan_demand(self.cfg, self.net, seed), self.cfg, self.net.desc, self.route_file)
+        write_demand(plan_demand(self.cfg, self.net, self.demand, seed), self.cfg, self.net.desc, self.route_file)
         root = Path(self.cfg.sim.output_dir) if self.cfg.sim.output_dir else self._tmp / "outputs"
         self.out_dir = root / f"run_{seed}"
         d = self.demand

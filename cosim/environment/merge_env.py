@@ -1,40 +1,22 @@
-"""The on-ramp merge as a PettingZoo ParallelEnv over a real SUMO (libsumo).
+"""The on-ramp merge as a PettingZoo ParallelEnv over a real SUMO (libsumo); the why is in docs/env.md.
 
-Contract: the config is resolved on the env's net first (`cosim.sumo.resolve`: net-relative speeds, lengths
-and counts in absolute units, values the net cannot take capped with a warning naming the key); `env.cfg` is
-that resolved config. Agents `av_0 .. av_{N-1}` drive with the paper's 5 meta-actions
-(`cosim.environment.control.Action`) and observe a stacked VelocityMap (frames, channels, height, width);
-rewards are the SVO rewards of `cosim.environment.reward`, with every weighted term in
-`infos[agent]["reward_terms"]`. An agent terminates when its AV crashes or leaves the net. The episode is cut
-(every other live agent truncated) at the horizon, when the merging vehicle crashes (or, with
-`sim.end_on_stuck`, gets stuck at the end of the acceleration lane: by default it waits there to the
-horizon), and, with
-`sim.on_collision: end` (the paper's rule), at the SUMO step of the first collision that involves an AV or
-the merging vehicle: the other AVs' own driving did not end there, so a learner bootstraps, and an
-egoistic AV gains nothing from keeping the episode alive. With `on_collision: remove` the colliders are
-taken off the road after the decision step and the episode goes on. Every collision is attributed (kind,
-fault, cause: `cosim.environment.collisions`) in the episode summary.
-On the last step every agent's info carries `"episode"`, the episode's summary: the row of the
-`cosim.environment.tracker.EpisodeTracker` the env feeds every snapshot (`env.tracker`), with the seed and whether the
-merge failed. Observations are read-only views valid until the next step. Each live agent's infos carry
-`action_mask` at reset and every step (`action_masks()`: `cosim.environment.control.action_mask` of its lane, edge
-and target speed); the env takes any action whether or not anyone reads it.
-
-`step` is the template of `cosim.environment.base.SumoEnv` (act -> simulate -> observe -> reward -> end). It takes an
-action for every live agent (`env.agents`): an unknown agent, a missing action or one that is not an integer in range
-(`Action`; numpy integers are fine) is an `ActionError` (`cosim.environment.control.checked_actions`) naming the agent
-and the allowed actions; actions of agents already done are ignored. A closed env stays closed: `reset` and `step`
-after `close` raise a RuntimeError that says so.
-
-With `sim.outputs`, or for one episode with `reset(options={"outputs": True})` (training's validation episodes),
-each episode writes SUMO's tripinfo and induction-loop files into its own folder
-(`cosim.sumo.outputs.episode_folder`), over a window that is the same for every episode: `flush_outputs()` runs
-an episode that ended early on to the horizon (wrecks stay where they crashed, the AVs drive as SUMO's
-humans), completes the files and parses them into `env.sumo_outputs[seed]` (`cosim.sumo.outputs.SumoOutputs`);
-a reset or close without it completes them at the time the episode ended. With `safety.ssm` (the default) SUMO's
-SSM device rides along and its conflicts up to the episode's end (not the run-out's, when SUMO drives the AVs and
-the wrecks stand) are counted into the outputs (`cosim.sumo.outputs.conflict_counts`). With `sim.av_driver: sumo` the
-agents' actions are ignored and SUMO's own models drive the AVs (the all-human baseline).
+Contract: `env.cfg` is the config resolved on the env's net (`cosim.sumo.setting.Setting`). Agents
+`av_0 .. av_{N-1}` act with the 5 meta-actions (`cosim.environment.control.Action`) and observe a stacked
+VelocityMap (frames, channels, height, width), read-only views valid until the next step; rewards are the SVO
+rewards of `cosim.environment.reward`, each weighted term in `infos[agent]["reward_terms"]`, each live agent's
+`action_mask` in its infos (`action_masks()`). An agent terminates when its AV crashes or leaves the net; every
+live agent is truncated at the horizon, when the merging vehicle crashes (or, with `sim.end_on_stuck`, is stuck
+at the end of the acceleration lane) and, with `sim.on_collision: end`, at the first collision involving an AV
+or the merging vehicle; with `remove` the colliders leave the road and the episode goes on. The last step's
+infos carry `"episode"`, the `cosim.environment.tracker.EpisodeTracker` row (`env.tracker`) with the seed, whether
+the merge failed and each collision's attribution (`cosim.environment.collisions`).
+`step` is `cosim.environment.base.SumoEnv`'s template (act -> simulate -> observe -> reward -> end); a bad action
+is an `ActionError` (`cosim.environment.control.checked_actions`), actions of agents already done are ignored;
+`reset`/`step` after `close` raise RuntimeError.
+With `sim.outputs` (or `reset(options={"outputs": True})`) an episode writes SUMO's tripinfo, induction-loop and
+(`safety.ssm`) SSM files into its folder (`cosim.sumo.outputs.episode_folder`); `flush_outputs()` runs an episode
+that ended early on to the horizon and parses them into `env.sumo_outputs[seed]`. With `sim.av_driver: sumo`
+SUMO drives the AVs and actions are ignored.
 """
 
 from __future__ import annotations

@@ -27,9 +27,10 @@ from cosim.errors import ConfigError
 from cosim.evaluation.runner import Baseline, evaluate
 from cosim.evaluation.stats import format_table
 from cosim.files import atomic_write_text
-from cosim.sumo.net import load_net, net_summary, summary_lines
-from cosim.sumo.resolve import resolve, scenario_lines
+from cosim.sumo.net import net_summary, summary_lines
+from cosim.sumo.resolve import scenario_lines
 from cosim.sumo.scenario import plan_episode
+from cosim.sumo.setting import Setting
 
 log = logging.getLogger(__name__)
 
@@ -112,14 +113,14 @@ def check_net(cfg: Config, out_dir: Path, episodes: int = 100, max_episodes: int
         raise ConfigError("demand.enabled: check-net judges the episode scenario (whether the merge is a dilemma); "
                           "check the net with an episode config (e.g. --config configs/default.yaml --net NET), then "
                           "evaluate under demand: cosim evaluate --config CONFIG --net NET")
-    net = load_net(cfg.net.file, cfg.net.description)
+    on_net = Setting.of(cfg)
+    net = on_net.net
     summary = net_summary(net)
-    resolved = resolve(cfg, net)
     say("\n".join(summary_lines(summary)))
-    say("scenario on this net:\n  " + "\n  ".join(scenario_lines(resolved.config, net)))
-    for note in resolved.notes:
+    say("scenario on this net:\n  " + "\n  ".join(scenario_lines(on_net.config, net)))
+    for note in on_net.notes:
         say(f"capped: {note}")
-    plan_episode(resolved.config, net, seed)  # a placement this net makes impossible stops here
+    plan_episode(on_net.config, net, seed)  # a placement this net makes impossible stops here
     n = episodes
     while True:
         evaluations = _baselines(cfg, out_dir, n, workers, seed)
@@ -132,13 +133,13 @@ def check_net(cfg: Config, out_dir: Path, episodes: int = 100, max_episodes: int
     failed = {v["target"] for v in verdicts if not v["met"]}
     accel_s = net.accel_length / net.ramp_speed_limit
     answers = [a for a in ADVICE if failed & set(a.targets)]
-    result = {"net": summary, "config": cfg.source, "notes": list(resolved.notes), "episodes": n, "first_seed": seed,
+    result = {"net": summary, "config": cfg.source, "notes": list(on_net.notes), "episodes": n, "first_seed": seed,
               "dilemma": not failed, "targets": verdicts,
               "advice": [a.text.format(accel=round(net.accel_length), accel_s=accel_s) for a in answers],
               "suggestion": (_suggest(cfg, out_dir, answers[0], episodes, workers, seed) if suggest and answers
                              else None),
               "metrics": {p: e["metrics"] for p, e in evaluations.items()}}
-    head, results = _report(result, evaluations, resolved.config, net)
+    head, results = _report(result, evaluations, on_net.config, net)
     say(results)
     text = head + "\n\n" + results
     out_dir.mkdir(parents=True, exist_ok=True)

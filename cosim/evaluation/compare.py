@@ -35,7 +35,7 @@ from cosim.evaluation import plots
 from cosim.evaluation.stats import SUMMARY_METRICS, format_table, summarize
 from cosim.evaluation.store import Evaluation, checked_rows, find_evaluation, video_files
 from cosim.files import atomic_write_text, column, write_csv, write_json
-from cosim.sumo.setting import setting_lines
+from cosim.sumo.setting import Setting, setting_lines
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +65,7 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
     if episodic:
         merger = {e.label: column(rows[e.label], "merger_distance") for e in episodic}
         # The acceleration lane's marks where every run has the same (net, ramp start positions).
-        marks = [plots.accel_lane_marks(load_config(e.eval_dir / "config.yaml")) for e in episodic]
+        marks = [plots.accel_lane_marks(Setting.of(load_config(e.eval_dir / "config.yaml"))) for e in episodic]
         figures["bars"] = plots.bars({e.label: metrics[e.label] for e in episodic}, out_dir / "bars.png",
                                      caption=caption)
         figures["merger distance"] = plots.distance_histogram(

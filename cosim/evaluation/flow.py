@@ -31,12 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from cosim.config import Config
-from cosim.sumo.demand import Demand, resolve_demand
+from cosim.sumo.demand import Demand
 from cosim.sumo.flow_outputs import FlowOutputs, FlowSites
-from cosim.sumo.net import load_net
-from cosim.sumo.resolve import resolve
 from cosim.sumo.scenario import kind_of
+from cosim.sumo.setting import Setting
 from cosim.sumo.snapshot import KIND_MERGER
 
 PER_MILE = 1.609344  # [km/mi]
@@ -148,7 +146,7 @@ def demand_summary(rows: list[Mapping[str, Any]], metrics: Mapping[str, Mapping[
             "capacity": str(rows[0].get("capacity", "")) if rows else ""}
 
 
-def demand_setting(cfg: Config) -> dict[str, Any]:
-    """The demand of a config, resolved on its net (veh/h, the AVs, the times, the capacities), JSON-ready."""
-    net = load_net(cfg.net.file, cfg.net.description)
-    return {**asdict(resolve_demand(resolve(cfg, net).config, net)), "interval": cfg.demand.interval}
+def demand_setting(on_net: Setting) -> dict[str, Any]:
+    """The demand of a demand setting (veh/h, the AVs, the times, the capacities), JSON-ready."""
+    assert on_net.demand is not None, "a demand config's setting"
+    return {**asdict(on_net.demand), "interval": on_net.config.demand.interval}

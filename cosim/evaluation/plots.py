@@ -33,16 +33,15 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
 from matplotlib.ticker import MaxNLocator
 
-from cosim.config import Config, load_config
+from cosim.config import load_config
 from cosim.environment.control import Action
 from cosim.environment.render import COLOURS as TOP_VIEW_COLOURS
 from cosim.environment.render import lane_markings, top_view
 from cosim.environment.velocity_map import RoadRaster, rasterize_road
 from cosim.evaluation.store import load_trajectory, trajectory_files
 from cosim.files import atomic_path, column, read_csv
-from cosim.sumo.net import load_net
-from cosim.sumo.resolve import resolve
 from cosim.sumo.roadnet import load_roadnet
+from cosim.sumo.setting import Setting
 from cosim.sumo.snapshot import KIND_HV, KIND_MERGER
 
 GUIDE_RGB = (255, 150, 20)
@@ -132,12 +131,11 @@ def bars(summaries: Mapping[str, Mapping[str, Mapping[str, float]]], path: Path,
     return save(fig, path)
 
 
-def accel_lane_marks(cfg: Config) -> dict[str, tuple[float, float]]:
+def accel_lane_marks(on_net: Setting) -> dict[str, tuple[float, float]]:
     """[m] where a merging vehicle's odometer reads at the acceleration lane's start and at its end: spans, since
     its start on the ramp is drawn per episode (`scenario.merger_time` at its speed, `merger_distance` or
     `merger_pos`, resolved on the net and capped at the ramp's start)."""
-    net = load_net(cfg.net.file, cfg.net.description)
-    sc = resolve(cfg, net).config.scenario
+    net, sc = on_net.net, on_net.config.scenario
     ramp = net.chainage.merge_start - net.ramp_offsets[net.desc.ramp[0]]  # [m] the ramp's start to the lane's
     if sc.merger_pos is not None:
         lo, hi = ramp - sc.merger_pos[1], ramp - sc.merger_pos[0]
@@ -382,7 +380,7 @@ def plot_evaluation(eval_dir: Path, plots_dir: Path, label: str,
     record = eval_dir / "evaluation.json"
     caption = evaluation_caption([json.loads(record.read_text(encoding="utf-8")) if record.is_file() else {}])
     out = [distance_histogram({label: column(rows, "merger_distance")}, plots_dir / "merger_distance.png",
-                              marks=accel_lane_marks(cfg), caption=caption)] if rows is not None else []
+                              marks=accel_lane_marks(Setting.of(cfg)), caption=caption)] if rows is not None else []
     files = trajectory_files(eval_dir)
     if files:
         roadnet = load_roadnet(cfg.net.file)

@@ -25,6 +25,7 @@ from cosim.evaluation.stats import RATE_METRICS, SUMMARY_METRICS, finite, format
 from cosim.evaluation.store import pooled, run_name
 from cosim.files import atomic_write_text
 from cosim.sumo.net import load_net
+from cosim.sumo.setting import Setting
 
 # Rate label -> its episodes.csv column, in the summary table's order (crash, crash by cause, merge success).
 RATES = {label: column for label, (column, _) in SUMMARY_METRICS.items() if label in RATE_METRICS}
@@ -60,7 +61,7 @@ def write_report(out: Path, phis: Sequence[float], seeds: Sequence[int], baselin
         "Traffic flow over the SVO angle": _flow_vs_phi(out / "flow_vs_phi.png", table, phis, baselines, caption),
         "The merging vehicle's distance": plots.distance_histogram(
             {label: [float(r["merger_distance"]) for r in rows] for label, rows in _ego_alt(phi_rows).items()},
-            out / "merger_distance.png", marks=plots.accel_lane_marks(cfg), caption=caption),
+            out / "merger_distance.png", marks=plots.accel_lane_marks(Setting.of(cfg)), caption=caption),
     }
     curves = plots.training_curves({phi_label(p): [out / "runs" / run_name(p, s) / "episodes.csv" for s in seeds
                                                    if (p, s) in run_rows] for p in phis},

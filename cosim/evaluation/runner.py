@@ -59,7 +59,6 @@ from cosim.evaluation.flow import demand_setting, demand_summary, run_row
 from cosim.evaluation.store import config_hash, save_trajectory, scenario_hash, summarize_evaluation
 from cosim.files import AppendCsv, FolderLock, FolderState, atomic_write_text, read_csv, write_json
 from cosim.progress import Heartbeat
-from cosim.sumo.setting import setting
 from cosim.workers import START_TIMEOUT, WORKER_MIB, WorkerPool, check_memory, keep_alive
 
 log = logging.getLogger(__name__)
@@ -282,7 +281,7 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
              workers: int = 1, trajectories: int = 3, confidence: float = 0.95, run_dir: Path | None = None,
              plots: bool = True, overrides: Sequence[str] = (), videos: int = 0) -> dict[str, Any]:
     """Evaluate `policy` on episodes `seed .. seed + episodes - 1` into `out_dir`; returns the summary dict
-    (also written to `out_dir/summary.json`, with what it ran on: `cosim.sumo.setting.setting`, the
+    (also written to `out_dir/summary.json`, with what it ran on: `cosim.sumo.setting.Setting.record`, the
     command line's `overrides` included; `report.md` words it). Resumes an interrupted evaluation in the same
     folder."""
     check_counts(episodes, workers, trajectories, videos=videos)
@@ -297,14 +296,6 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
         trajectories = videos = 0
     identity = policy.identity()
     seeds = [seed + k for k in range(episodes)]
-    where = setting(cfg, overrides, seeds)
-    meta = {"policy": policy.name, "checkpoint": identity["checkpoint"], "greedy": identity["greedy"],
-            "net": cfg.net.file, "net_sha256": where["net"]["sha256"], "config": cfg.source,
-            "run": None if run_dir is None else str(Path(run_dir).resolve()),
-            "config_sha256": config_hash(cfg.to_dict()), "scenario_sha256": scenario_hash(cfg.to_dict()),
-            "trained_updates": identity["trained_updates"], "model_sha256": identity["model_sha256"]}
-    if identity["trained_updates"] is not None:
-        _warn_unless_held_out(seeds)
     job = Job(cfg.to_dict(), policy, str(out_dir), frozenset(seeds[:trajectories]), frozenset(seeds[:videos]),
               str(out_dir / "plots"))
     lock = FolderLock(out_dir, "cosim evaluate")
@@ -312,8 +303,18 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
     before = FolderState.capture(out_dir)
     csv_path = out_dir / "episodes.csv"
     try:
-        # Bad nets and checkpoints fail here, before the folder is claimed.
-        Runner(job, parallel_env(job.config)).close()
+        # Bad nets and checkpoints fail here, before the folder is claimed; the env's setting is the run's.
+        probe = Runner(job, parallel_env(job.config))
+        on_net = probe.env.setting
+        probe.close()
+        where = on_net.record(overrides, seeds)
+        meta = {"policy": policy.name, "checkpoint": identity["checkpoint"], "greedy": identity["greedy"],
+                "net": cfg.net.file, "net_sha256": where["net"]["sha256"], "config": cfg.source,
+                "run": None if run_dir is None else str(Path(run_dir).resolve()),
+                "config_sha256": config_hash(cfg.to_dict()), "scenario_sha256": scenario_hash(cfg.to_dict()),
+                "trained_updates": identity["trained_updates"], "model_sha256": identity["model_sha256"]}
+        if identity["trained_updates"] is not None:
+            _warn_unless_held_out(seeds)
         lock.acquire()
         _claim(out_dir, meta, cfg)
         writer = AppendCsv(csv_path)  # first: it drops a half-written last row
@@ -333,8 +334,8 @@ def evaluate(cfg: Config, policy: Policy, out_dir: Path, episodes: int, seed: in
         summary = {**meta, "episodes": len(rows), "first_seed": seed, "requested_episodes": episodes,
                    "confidence": confidence, "metrics": metrics,
                    "distance_check_max_m": max(checks) if checks else math.nan, "setting": where}
-        if cfg.demand.enabled:
-            summary["demand"] = {**demand_setting(cfg), **demand_summary(rows, metrics)}
+        if on_net.demand is not None:
+            summary["demand"] = {**demand_setting(on_net), **demand_summary(rows, metrics)}
         write_json(out_dir / "summary.json", summary)
         if checks and max(checks) > 0.5:
             log.warning("our distances and SUMO's tripinfo differ by up to %.2f m", max(checks))

@@ -14,11 +14,11 @@ Contract:
   `ConfigError` naming the key and the bound, before anything is allocated: an `av_count` above the mainline
   vehicles the demand releases (their expected number plus six standard deviations), and slots whose observations
   exceed `MAX_SLOT_VALUES` values.
-- `plan_demand(cfg, net, seed)` -> the run's `Arrival`s: exponential headways per highway lane and on the ramp
-  from t = 0 to the horizon, each mainline vehicle an AV with the penetration's probability (or `av_count` AVs
-  drawn among them), AVs named `av_0, av_1, ...` in order of departure (an AV beyond `max_avs`, unlikely by
-  construction, drives as an HV), HVs `hv_K`, ramp vehicles `merger_K` (driven as the `merger:` section says),
-  each human with drivers' parameters of its own as in the episode scenario.
+- `plan_demand(cfg, net, demand, seed)` -> the run's `Arrival`s (`demand`: `resolve_demand`'s): exponential headways per
+  highway lane and on the ramp from t = 0 to the horizon, each mainline vehicle an AV with the penetration's probability
+  (or `av_count` AVs drawn among them), AVs named `av_0, av_1, ...` in order of departure (an AV beyond `max_avs`,
+  unlikely by construction, drives as an HV), HVs `hv_K`, ramp vehicles `merger_K` (driven as the `merger:` section
+  says), each human with drivers' parameters of its own as in the episode scenario.
 - `write_demand(arrivals, cfg, desc, path)`: the route file. Vehicles enter at their desired speed, as traffic
   arriving from upstream does, and insertion checks stay on: a vehicle with no room to enter at that speed waits
   (SUMO's insertion backlog), which the flow metrics count as delay and ramp queue.
@@ -143,9 +143,8 @@ def _times(rng: np.random.Generator, vph: float, horizon: float) -> np.ndarray:
     return t[t < horizon]
 
 
-def plan_demand(cfg: Config, net: Net, seed: int) -> list[Arrival]:
-    """Every vehicle of the run `seed`, by departure time (see the module doc); `cfg` resolved on `net`."""
-    dem = resolve_demand(cfg, net)
+def plan_demand(cfg: Config, net: Net, dem: Demand, seed: int) -> list[Arrival]:
+    """Every vehicle of the run `seed`, by departure time (see the module doc); `cfg` and `dem` resolved on `net`."""
     rng = np.random.default_rng(seed)
     first = net.desc.highway[0]
     mainline = sorted((float(t), lane) for lane in net.through_lanes(first)

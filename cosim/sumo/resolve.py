@@ -1,7 +1,7 @@
 """The scenario's net-relative keys, resolved on one net into absolute units.
 
-Contract: `resolve(cfg, net)` returns a `Resolved` (`on_net(cfg)`: the config's own net loaded, and the notes
-logged): `config`, the same experiment with every net-relative key
+Contract: `resolve(cfg, net)` returns a `Resolved` (`cosim.sumo.setting.Setting.of(cfg)` loads the config's own net
+and resolves on it, once for a run): `config`, the same experiment with every net-relative key
 of `cosim.config.TWINS` replaced by its absolute twin for this net, and `notes`, one line per value the net
 cannot take, naming the key, what was asked and what it became (capped, never a SUMO error). Speeds are
 factors of speed limits: the highway's where the merge is (`Net.speed_limit`: the AVs' top speed and speed
@@ -17,34 +17,17 @@ env (the planner, control, reward, observation, the hand-written policies) reads
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from typing import Any
 
 from cosim.config import Config
-from cosim.sumo.net import Net, load_net
-
-log = logging.getLogger(__name__)
+from cosim.sumo.net import Net
 
 
 @dataclass(frozen=True)
 class Resolved:
     config: Config
     notes: tuple[str, ...]  # one line per capped value, naming its key
-
-
-def on_net(cfg: Config) -> tuple[Net, Resolved]:
-    """The config's net, and the config resolved on it, every capped value logged as a warning (an env's start)."""
-    net = load_net(cfg.net.file, cfg.net.description)
-    resolved = resolve(cfg, net)
-    for note in resolved.notes:
-        log.warning("%s", note)
-    for key in ("hv", "merger"):
-        driver = getattr(cfg, key)
-        if ignored := driver.ignored_lc_params():
-            log.warning("%s.lc_params: %s ignores %s (SL2015 reads it; set %s.lane_change_model: SL2015 to use it)",
-                        key, driver.lane_change_model, ", ".join(ignored), key)
-    return net, resolved
 
 
 def _span(factor: tuple[float, float], scale: float) -> tuple[float, float]:

@@ -34,7 +34,6 @@ from cosim.errors import ConfigError
 from cosim.files import scratch_write_text
 from cosim.sumo.net import Net
 from cosim.sumo.netdesc import NetDescription
-from cosim.sumo.resolve import resolve
 from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER
 
 MERGER_ID = "merger"
@@ -261,8 +260,7 @@ PLACEMENTS: dict[str, Callable[[_Planner], None]] = {"window": _place_window, "s
 
 
 def plan_episode(cfg: Config, net: Net, seed: int) -> Plan:
-    """The episode `seed`'s vehicles for `cfg` on `net` (resolved on it first: `cosim.sumo.resolve`)."""
-    cfg = resolve(cfg, net).config  # a no-op on a config resolved already, as the env's
+    """The episode `seed`'s vehicles for `cfg` resolved on `net` (`cosim.sumo.setting.Setting`)."""
     planner = _Planner(cfg, net, seed)
     PLACEMENTS[cfg.scenario.placement](planner)
     sc, hv = cfg.scenario, cfg.hv

@@ -1,42 +1,66 @@
-"""What an evaluation or a training run ran on, recorded and in words: the net, the scenario resolved on it, the
-overrides, the flow window and the detector; or, for a demand run, the demand.
+"""An experiment on its net, resolved once, and what a run ran on, recorded and in words.
 
-Contract: `setting(cfg, overrides, seeds)` returns a JSON-ready dict: `net` (`cosim.sumo.net.net_summary`: path,
-sha256, roles, lanes, lengths, limits) and `overrides` (the command line's --set and --net); for an episode
-config `scenario` (`cosim.sumo.resolve.scenario_lines`), `capped` (the resolution's notes), `flow_window_s` and
-`detector` (where SUMO's induction loops count the throughput); for a demand config (`demand.enabled`) `drivers`
-(`cosim.sumo.resolve.driver_lines`: the episodes' placement means nothing there) and `demand` (the demand
-resolved on the net, `cosim.sumo.demand.Demand`, with its detector interval and `seeds`, one run each).
-`cosim evaluate` keeps it in `summary.json` and `net.json`, `cosim train` in the run's `net.json`;
-`setting_lines(setting)` words it for the Markdown reports of `cosim evaluate` and `cosim compare`.
+Contract: `Setting.of(cfg, warn=False)` loads the config's net and resolves the config on it once: `config` holds
+the net-relative keys in absolute units (`cosim.sumo.resolve`), `notes` the values capped to fit the net (logged
+as warnings with `warn`, as an env's start does) and, for a demand config, `demand` its traffic
+(`cosim.sumo.demand.Demand`; None for the episode scenario). Everything downstream (the envs, the planners, the
+evaluation's records and figures) takes the `Setting` and resolves nothing again.
+`setting.record(overrides, seeds)` is what a run ran on, JSON-ready: `net` (`cosim.sumo.net.net_summary`) and
+`overrides` (the command line's --set and --net); for the episode scenario `scenario`, `capped`, `flow_window_s`
+and `detector` (where SUMO's induction loops count the throughput); under demand `drivers` and `demand` (with its
+detector interval and `seeds`, one run each). `cosim evaluate` keeps it in `summary.json` and `net.json`,
+`cosim train` in the run's `net.json`; `setting_lines(record)` words it for the Markdown reports.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from typing import Any
 
 from cosim.config import Config
-from cosim.sumo.demand import resolve_demand
-from cosim.sumo.net import load_net, net_summary, summary_lines
+from cosim.sumo.demand import Demand, resolve_demand
+from cosim.sumo.net import Net, load_net, net_summary, summary_lines
 from cosim.sumo.outputs import detector_site
 from cosim.sumo.resolve import driver_lines, resolve, scenario_lines
 
+log = logging.getLogger(__name__)
 
-def setting(cfg: Config, overrides: Sequence[str] = (), seeds: Sequence[int] = ()) -> dict[str, Any]:
-    """`seeds`: the runs of a demand evaluation (an episode evaluation's seeds are in its summary)."""
-    net = load_net(cfg.net.file, cfg.net.description)
-    resolved = resolve(cfg, net)
-    common = {"net": net_summary(net), "overrides": list(overrides)}
-    if cfg.demand.enabled:
-        demand = asdict(resolve_demand(resolved.config, net))
-        return {**common, "drivers": driver_lines(resolved.config),
-                "demand": {**demand, "interval": cfg.demand.interval, "seeds": list(seeds)}}
-    site = detector_site(net, cfg.sim.detector_offset)
-    return {**common, "scenario": scenario_lines(resolved.config, net), "capped": list(resolved.notes),
-            "flow_window_s": cfg.sim.horizon,
-            "detector": {"edge": site.edge, "lanes": list(site.lanes), "pos_m": round(site.pos, 1)}}
+
+@dataclass(frozen=True)
+class Setting:
+    config: Config  # resolved on `net`
+    net: Net
+    notes: tuple[str, ...]  # one line per capped value, naming its key
+    demand: Demand | None  # the demand resolved on `net`; None for the episode scenario
+
+    @classmethod
+    def of(cls, cfg: Config, warn: bool = False) -> Setting:
+        """`cfg` on its net (module doc); `warn`: log the capped values and ignored driver parameters."""
+        net = load_net(cfg.net.file, cfg.net.description)
+        resolved = resolve(cfg, net)
+        for note in resolved.notes if warn else ():
+            log.warning("%s", note)
+        for key in ("hv", "merger") if warn else ():
+            driver = getattr(cfg, key)
+            if ignored := driver.ignored_lc_params():
+                log.warning("%s.lc_params: %s ignores %s (SL2015 reads it; set %s.lane_change_model: SL2015 to use "
+                            "it)", key, driver.lane_change_model, ", ".join(ignored), key)
+        config = resolved.config
+        return cls(config, net, resolved.notes, resolve_demand(config, net) if config.demand.enabled else None)
+
+    def record(self, overrides: Sequence[str] = (), seeds: Sequence[int] = ()) -> dict[str, Any]:
+        """`seeds`: the runs of a demand evaluation (an episode evaluation's seeds are in its summary)."""
+        cfg, net = self.config, self.net
+        common = {"net": net_summary(net), "overrides": list(overrides)}
+        if self.demand is not None:
+            return {**common, "drivers": driver_lines(cfg),
+                    "demand": {**asdict(self.demand), "interval": cfg.demand.interval, "seeds": list(seeds)}}
+        site = detector_site(net, cfg.sim.detector_offset)
+        return {**common, "scenario": scenario_lines(cfg, net), "capped": list(self.notes),
+                "flow_window_s": cfg.sim.horizon,
+                "detector": {"edge": site.edge, "lanes": list(site.lanes), "pos_m": round(site.pos, 1)}}
 
 
 def setting_lines(s: dict[str, Any]) -> list[str]:

@@ -31,8 +31,8 @@ def test_the_plan_draws_the_demand_it_is_given() -> None:
     net = load_net(cfg.net.file)
     cfg = resolve(cfg, net).config
     d = resolve_demand(cfg, net)
-    plan = plan_demand(cfg, net, 3)
-    assert plan == plan_demand(cfg, net, 3) and plan != plan_demand(cfg, net, 4)
+    plan = plan_demand(cfg, net, d, 3)
+    assert plan == plan_demand(cfg, net, d, 3) and plan != plan_demand(cfg, net, d, 4)
     kinds = np.array([a.kind for a in plan])
     hours = d.horizon / 3600
     # An hour at 2 x 1,200 veh/h on the highway and 600 on the ramp (Poisson: within 4 standard deviations).
@@ -43,7 +43,8 @@ def test_the_plan_draws_the_demand_it_is_given() -> None:
     assert [a.vid for a in avs] == [f"av_{i}" for i in range(len(avs))] and len(avs) <= d.max_avs
     assert all(a.route == "ramp_0" for a in plan if a.kind == KIND_MERGER)
     assert [a.depart for a in plan] == sorted(a.depart for a in plan)
-    counted = plan_demand(load_config(cfg, {"demand.av_count": 7}), net, 3)
+    seven = load_config(cfg, {"demand.av_count": 7})
+    counted = plan_demand(seven, net, resolve_demand(seven, net), 3)
     assert sum(a.kind == KIND_AV for a in counted) == 7 and sum(a.kind == KIND_HV for a in counted) > 0
 
 

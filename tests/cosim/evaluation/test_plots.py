@@ -19,6 +19,7 @@ from cosim.environment.render import COLOURS as TOP_VIEW_COLOURS
 from cosim.environment.velocity_map import rasterize_road
 from cosim.evaluation import plots
 from cosim.sumo.roadnet import load_roadnet
+from cosim.sumo.setting import Setting
 from cosim.sumo.snapshot import KIND_MERGER
 
 CAPTION = plots.caption_text("sumo_net/dilemma/dilemma.net.xml", "configs/default.yaml", "courteous")
@@ -121,7 +122,7 @@ def test_bars_hold_the_flow_metrics(figures, readable, tmp_path: Path) -> None:
 
 def test_distance_histogram_marks_the_acceleration_lane(figures, readable, tmp_path: Path) -> None:
     cfg = load_config("configs/default.yaml")
-    marks = plots.accel_lane_marks(cfg)
+    marks = plots.accel_lane_marks(Setting.of(cfg))
     # dilemma: the merging vehicle starts 3.6-5.4 s before the acceleration lane at 0.8-1.0 x the ramp's 22.22
     # m/s (64-120 m), its end one merge edge (118.8 m between the junctions) further.
     (s0, s1), (e0, e1) = marks.values()

@@ -152,8 +152,9 @@ def test_stream_plan_is_a_dense_stream_with_a_guide_av(dilemma) -> None:
 
 
 def test_stream_on_a_short_highway_moves_down_and_goes_on(two_lane_net: Path) -> None:
-    cfg = load_config(ROOT / "configs" / "default.yaml", {"net.file": str(two_lane_net), "scenario.n_hvs": 4})
     net = load_net(two_lane_net)
+    cfg = resolve(load_config(ROOT / "configs" / "default.yaml", {"net.file": str(two_lane_net), "scenario.n_hvs": 4}),
+                  net).config
     for seed in range(10):
         plan = plan_episode(cfg, net, seed)
         assert sum(sp.kind == KIND_AV for sp in plan.vehicles) == cfg.scenario.n_avs
