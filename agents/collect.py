@@ -12,11 +12,22 @@ actions: SUMO is deterministic) up to the command that failed. A failure that co
 but the episode's own (SUMO refusing an input, say): training stops at once with `EpisodeError` naming it,
 instead of cycling through restarts. Otherwise the episode goes on from there; one whose replay failed
 elsewhere is dropped from the batch (`valid` cleared) and counted as lost, not as an episode.
+
+Under traffic demand (`Segments`) a worker's run lasts minutes, longer than an update should wait: each update is a
+fixed-length segment of every worker's continuing simulation (`Segments.collect(policy, batch, update, seed_of)`:
+`batch`'s T decision steps on each worker, agents indexed by observation slot), as CleanRL's and SB3's rollouts of
+`num_steps` / `n_steps` are. An agent that goes on past the segment is truncated at its last step and bootstrapped
+from the value of the observation it goes on from; a run that reaches its horizon inside a segment is counted as an
+episode and the worker starts its next run at once (seed `seed_of(worker)`). A worker that fails loses its run:
+its samples of the segment are dropped (`valid` cleared), it is counted lost, and its replacement starts a new run.
+`Segments.drop()` forgets the runs in progress (after validation played other episodes on the workers, at a resume):
+the next segment starts new ones.
 """
 
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -140,3 +151,98 @@ def _act(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, live: list[tu
     pool.send_step(ws, full)
     for w in ws:
         step[w] += 1
+
+
+class Segments:
+    """The continuing runs of training under demand, one per worker, and their segments (module doc)."""
+
+    def __init__(self, pool: WorkerPool) -> None:
+        self.pool = pool
+        self.runs: dict[int, tuple[int, StepResult]] = {}  # worker -> (its run's seed, its answer to act on)
+        self.sums: dict[int, tuple[float, dict[str, float]]] = {}  # worker -> its run's rewards and terms so far
+
+    def drop(self) -> None:
+        self.runs.clear()
+        self.sums.clear()
+
+    def collect(self, policy: MultiAgentPolicy, batch: Batch, update: int, seed_of: Callable[[int], int]) -> Collected:
+        out = Collected()
+        pool, steps, n_workers = self.pool, batch.valid.shape[0], batch.valid.shape[1]
+        batch.clear()
+        half = (n_workers + 1) // 2
+        groups = [list(range(half)), list(range(half, n_workers))]
+        step = np.zeros(n_workers, dtype=np.int64)  # next decision of each worker's segment
+        seeds = {w: run[0] for w, run in self.runs.items()}
+        ready = {w: run[1] for w, run in self.runs.items()}  # workers that act first, on their last answer
+        resetting: set[int] = set()  # workers whose next answer is a reset's
+        self.runs = {}
+
+        def start(ws: list[int]) -> None:
+            for w in ws:
+                seeds[w] = seed_of(w)
+                self.sums[w] = (0.0, {})
+            resetting.update(ws)
+            pool.send_reset(ws, [seeds[w] for w in ws])
+
+        start([w for w in range(n_workers) if w not in ready])
+        running = set(range(n_workers))
+        while running:
+            for g in groups:
+                waiting = [w for w in g if w in running and w not in ready]
+                answers = dict(zip(waiting, pool.recv(waiting), strict=True)) if waiting else {}
+                at_horizon: list[tuple[int, int, int]] = []  # (t, w, i): truncated at the run's end
+                going_on: list[tuple[int, int, int]] = []  # (t, w, i): alive past the segment's end
+                restart, live = [], []
+                for w in [w for w in g if w in running]:
+                    stepped = w in answers and w not in resetting  # an answer to a decision of this segment
+                    res = answers[w] if w in answers else ready.pop(w)
+                    resetting.discard(w)
+                    if res.lost:
+                        batch.valid[:, w] = False  # its trajectories in this segment lost their ends
+                        out.lost += 1
+                        restart.append(w)
+                        continue
+                    t = step[w] - 1
+                    if stepped:
+                        batch.rewards[t, w] = torch.from_numpy(res.reward)
+                        batch.terminated[t, w] = torch.from_numpy(res.terminated)
+                        batch.truncated[t, w] = torch.from_numpy(res.truncated)
+                        at_horizon += [(t, w, int(i)) for i in np.flatnonzero(res.truncated)]
+                        reward, terms = self.sums[w]
+                        for name, values in res.reward_terms.items():
+                            terms[name] = terms.get(name, 0.0) + float(values.sum())
+                        self.sums[w] = (reward + float(res.reward.sum()), terms)
+                    if res.episode is not None:  # the run reached its horizon: the next one starts at once
+                        reward, terms = self.sums.pop(w)
+                        avs = max(int(res.episode.get("avs_released", 0)), 1)  # per AV, as an episode's return
+                        out.episodes.append(Episode(w, seeds[w], res.episode, np.array([reward / avs]),
+                                                    {k: np.array([v / avs]) for k, v in terms.items()}))
+                        restart.append(w)
+                    elif step[w] >= steps:  # the segment is complete; the run goes on in the next one
+                        if stepped:
+                            on = res.alive & batch.valid[t, w].numpy() & ~res.terminated
+                            going_on += [(t, w, int(i)) for i in np.flatnonzero(on)]
+                        self.runs[w] = (seeds[w], res)
+                        running.discard(w)
+                    else:
+                        live.append((w, res))
+                _bootstrap(policy, batch, pool.final, at_horizon, update)
+                _bootstrap(policy, batch, pool.obs, going_on, update)
+                if restart:
+                    start(restart)
+                if live:
+                    _act(pool, policy, batch, live, step, update)
+        out.samples = int(batch.valid.sum())
+        return out
+
+
+def _bootstrap(policy: MultiAgentPolicy, batch: Batch, source: Any, cut: list[tuple[int, int, int]],
+               update: int) -> None:
+    """Agents (t, w, i) whose trajectory is cut after decision t: truncated there, with the value of the observation
+    they go on from (`source[w, i]`: the pool's final observations, or its current ones) to bootstrap."""
+    if not cut:
+        return
+    t_, w_, i_ = (torch.tensor(x) for x in zip(*cut, strict=True))
+    batch.truncated[t_, w_, i_] = True
+    obs = torch.from_numpy(source[w_.numpy(), i_.numpy()])
+    batch.final_values[t_, w_, i_] = policy.value(obs, i_, update)

@@ -18,7 +18,11 @@ lacks rows the checkpoint counts (deleted or cut: the run goes on, its log witho
 
 One update: every worker plays one whole episode (`agents.collect`), then the network(s) learn from every
 sample the scheme allows (`agents.multiagent`). Samples of absent agents and episodes lost to a worker
-failure are masked out, never padded into the loss.
+failure are masked out, never padded into the loss. Under demand (`demand.enabled`) an update is a segment of
+`train.segment_steps` decisions of every worker's continuing run (`agents.collect.Segments`), agents indexed by
+observation slot, one shared network; an episode is one run (warm-up and window), and its row in `episodes.csv`
+holds the run's reward per AV released. The runs in progress at a stop are not in the checkpoint (SUMO's state is
+not saved): a resumed run starts new runs, so it continues with other runs than an uninterrupted one would.
 """
 
 from __future__ import annotations
@@ -57,7 +61,7 @@ from agents.checkpoint import (
     save_policy,
     set_rng_state,
 )
-from agents.collect import Collected, collect
+from agents.collect import Collected, Segments, collect
 from agents.config import TrainConfig, check_device, train_config
 from agents.logs import RunLogger, cut_logs, log_gaps
 from agents.multiagent import Batch, MultiAgentPolicy
@@ -76,6 +80,10 @@ TORCH_THREADS = torch.get_num_threads()  # torch's default, before any run of th
 # validated: the episodes trained when the last validation ran (train.eval_every)
 COUNTERS = ("episodes", "updates", "samples", "restarts", "lost_episodes", "validated")
 NET_RECORD = "net.json"  # the net a run trains on (path, sha256, summary) and the scenario resolved on it
+# The env's summary keys an episodes.csv row carries: of an episode, and of a run under demand.
+EPISODE_KEYS = ("crashed", "merged", "mean_distance", "merger_distance", "length", "cause_av", "cause_hv_into_av",
+                "cause_merger")
+DEMAND_KEYS = ("length", "avs_released", "collisions")
 
 
 @dataclass(frozen=True)
@@ -109,7 +117,7 @@ RESUMABLE = frozenset({"train.episodes", "train.budget_min", "train.checkpoint_e
                        "train.device", *(f"safety.{key}" for key in SafetyConfig.model_fields)})
 # What a run from before a key existed did, for the resume's comparison: it trained without action masks, and
 # without a safety layer.
-UNRECORDED = {"train.action_mask": False, "av.shield": "none"}
+UNRECORDED = {"train.action_mask": False, "av.shield": "none", "train.segment_steps": 64}
 
 
 def run_config(cfg: Config, tc: TrainConfig) -> dict[str, Any]:
@@ -168,13 +176,34 @@ def _check_memory(cfg: Config, tc: TrainConfig, backend: Backend) -> None:
     of it is allocated or started."""
     obs = cfg.observation
     values = math.prod(obs.shape)
-    steps = max(1, round(cfg.sim.horizon / cfg.sim.decision_period))
-    batch = steps * tc.workers * cfg.scenario.n_avs * values * np.dtype(obs.dtype).itemsize
-    parts = [(f"one update's batch ({steps:,} decision steps x {tc.workers} workers x {cfg.scenario.n_avs} AVs x "
+    if cfg.demand.enabled:
+        steps, agents, who = tc.segment_steps, Setting.of(cfg).demand.slots, "AV slots"
+    else:
+        steps, agents, who = max(1, round(cfg.sim.horizon / cfg.sim.decision_period)), cfg.scenario.n_avs, "AVs"
+    batch = steps * tc.workers * agents * values * np.dtype(obs.dtype).itemsize
+    parts = [(f"one update's batch ({steps:,} decision steps x {tc.workers} workers x {agents} {who} x "
               f"{values:,} observation values)", batch)]
     if backend.name == "local":
         parts.append((f"{tc.workers} worker processes", tc.workers * WORKER_MIB << 20))
-    check_memory(parts, "lower sim.horizon, train.workers (--workers), scenario.n_avs or the observation's size")
+    check_memory(parts, "lower train.segment_steps (under demand) or sim.horizon, train.workers (--workers), "
+                        "scenario.n_avs or the observation's size")
+
+
+def _check_demand(cfg: Config, tc: TrainConfig) -> None:
+    """What training under demand cannot do yet, or at all, refused before anything starts."""
+    demand = Setting.of(cfg).demand
+    assert demand is not None
+    decisions = max(1, round(demand.horizon / cfg.sim.decision_period))
+    if tc.segment_steps >= decisions:
+        raise ConfigError(f"train.segment_steps: {tc.segment_steps} decisions, not shorter than a run ({decisions} "
+                          f"decisions of demand.warmup + demand.window); give fewer")
+    if not tc.shared_policy:
+        raise ConfigError("train.shared_policy: false: under demand AVs come and go, each a new agent; one network "
+                          "per AV has no AV to belong to: set train.shared_policy: true")
+    if tc.eval_every:
+        raise ConfigError(f"train.eval_every: {tc.eval_every}: validation during training runs on the episode "
+                          "scenario only so far; under demand set train.eval_every: 0 (configs/demand.yaml does) and "
+                          "evaluate the run's policy.pt with cosim evaluate --run RUN --config configs/demand.yaml")
 
 
 def _default_env_factory(cfg: Config) -> EnvFactory:
@@ -197,8 +226,7 @@ def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: i
         with StopRequest() as stop:
             while not run.finished() and not stop.requested:
                 run.begin_update()
-                seeds = run.next_seeds()
-                got = run.collect(seeds)
+                got = run.collect()
                 stats = run.learn()
                 run.log(got, stats)
                 run.end_update()
@@ -285,11 +313,9 @@ class _Run:
             raise ConfigError(f"--init-from {init_from}: starts a new run; --resume continues one from its own "
                               "checkpoint: give one of the two")
         start = load_policy(init_from) if init_from is not None else None  # a bad file fails here, at once
-        if cfg.demand.enabled and env_factory is None:
-            raise ConfigError("demand.enabled: training runs on the episode scenario (AVs of fixed names, episodes of "
-                              "seconds); evaluate the trained AVs under demand: cosim evaluate --run RUN --config "
-                              "configs/demand.yaml")
         tc = train_config(cfg)
+        if cfg.demand.enabled:
+            _check_demand(cfg, tc)
         tc = tc.model_copy(update={"workers": workers or tc.workers, "episodes": episodes or tc.episodes,
                                    "budget_min": tc.budget_min if budget_min is None else budget_min,
                                    "device": device or tc.device})
@@ -382,9 +408,12 @@ class _Run:
                 set_rng_state(payload["rng"])
                 log.info("resumed %s at update %d, episode %d", self.ckpt_path, self.counters["updates"],
                          self.counters["episodes"])
-            # Storage for one update, allocated once: T steps x W workers x N agents.
-            self.batch = Batch.allocate(spec.max_steps, tc.workers, len(spec.agents), spec.obs_shape,
-                                        getattr(torch, spec.obs_dtype), spec.n_actions)
+            # Storage for one update, allocated once: T steps x W workers x N agents (under demand: AV slots).
+            self.demand = cfg.demand.enabled
+            self.segments = Segments(self.pool) if self.demand else None
+            self.batch = Batch.allocate(tc.segment_steps if self.demand else spec.max_steps, tc.workers,
+                                        len(spec.agents), spec.obs_shape, getattr(torch, spec.obs_dtype),
+                                        spec.n_actions)
             # Every check passed: from here on the run folder changes.
             self.lock.acquire()
             for stale in [p for name in (CHECKPOINT_NAME, POLICY_NAME, BEST_NAME)
@@ -452,10 +481,15 @@ class _Run:
         n = min(self.tc.workers, self.tc.episodes - self.counters["episodes"])
         return [episode_seed(self.tc.seed, self.counters["updates"], w) for w in range(n)]
 
-    def collect(self, seeds: list[int]) -> Collected:
+    def collect(self) -> Collected:
         torch.set_num_threads(self.threads["act"])
         t0 = time.perf_counter()
-        got = collect(self.pool, self.policy, self.batch, seeds, self.counters["updates"])
+        update = self.counters["updates"]
+        if self.segments is not None:  # a run that starts in this update is seeded as an episode would be
+            got = self.segments.collect(self.policy, self.batch, update,
+                                        lambda w: episode_seed(self.tc.seed, update, w))
+        else:
+            got = collect(self.pool, self.policy, self.batch, self.next_seeds(), update)
         self.timing["rollout"] += time.perf_counter() - t0
         self._rollout_s = time.perf_counter() - t0
         return got
@@ -483,9 +517,9 @@ class _Run:
             c["episodes"] += 1
             row: dict[str, Any] = {"episode": c["episodes"], "update": c["updates"], "seed": ep.seed,
                                    "return_mean": float(ep.returns.mean())}
-            row.update({f"return_{a}": float(r) for a, r in zip(self.agents, ep.returns, strict=True)})
-            for key in ("crashed", "merged", "mean_distance", "merger_distance", "length", "cause_av",
-                        "cause_hv_into_av", "cause_merger"):
+            if not self.demand:  # under demand the agent axis is slots, each held by many AVs in turn
+                row.update({f"return_{a}": float(r) for a, r in zip(self.agents, ep.returns, strict=True)})
+            for key in DEMAND_KEYS if self.demand else EPISODE_KEYS:
                 row[key] = float(ep.info.get(key, float("nan")))
             row.update({f"term_{name}": float(v.mean()) for name, v in sorted(ep.terms.items())})
             rows.append(row)
@@ -496,13 +530,18 @@ class _Run:
         if c["updates"] % self.tc.log_every == 0:
             self.logger.update({"update": c["updates"], "episodes": c["episodes"], "samples": c["samples"],
                                 "samples_per_s": sps, "train_s": self.train_s, "restarts": c["restarts"], **stats})
-        rates = {"crash": self.logger.rate("crashed"), "merge": self.logger.rate("merged"),
-                 "ret": self.logger.rate("return_mean")}
+        if self.demand:  # an episode is a run of minutes: its collisions, not a crash of the episode
+            rates = {"collisions": self.logger.rate("collisions"), "ret": self.logger.rate("return_mean")}
+            said = f"runs, recent collisions per run {rates['collisions']:.1f} return per AV {rates['ret']:.2f}"
+        else:
+            rates = {"crash": self.logger.rate("crashed"), "merge": self.logger.rate("merged"),
+                     "ret": self.logger.rate("return_mean")}
+            said = (f"episodes, recent crash {rates['crash']:.2f} merge {rates['merge']:.2f} return "
+                    f"{rates['ret']:.2f}")
         self.bar.set_postfix(sps=f"{sps:.0f}", **{k: f"{v:.2f}" for k, v in rates.items()}, refresh=False)
         if self.headless and self.heartbeat():
-            log.info("update %d, episode %d/%d, %.0f agent-samples/s, recent crash %.2f merge %.2f return %.2f, "
-                     "loss %.3f entropy %.3f, %.0f s trained", c["updates"], c["episodes"], self.tc.episodes, sps,
-                     rates["crash"], rates["merge"], rates["ret"], stats.get("loss", float("nan")),
+            log.info("update %d, %d/%d %s, %.0f agent-samples/s, loss %.3f entropy %.3f, %.0f s trained",
+                     c["updates"], c["episodes"], self.tc.episodes, said, sps, stats.get("loss", float("nan")),
                      stats.get("entropy", float("nan")), self.train_s)
 
     def maybe_checkpoint(self) -> None:

@@ -124,7 +124,9 @@ class _EnvRunner:
 
     def __init__(self, env: Any) -> None:
         self.env = env
-        self.agents = tuple(env.possible_agents)
+        # An env whose agents come and go (the demand env) is indexed by its observation slots, others by agent.
+        self.slot_of = getattr(env, "agent_slot", None)
+        self.agents = tuple(env.slot_names if self.slot_of else env.possible_agents)
         self.index = {a: i for i, a in enumerate(self.agents)}
         space = env.observation_space(self.agents[0])
         max_steps = getattr(env, "max_steps", getattr(env, "max_cycles", None))
@@ -138,21 +140,24 @@ class _EnvRunner:
         self.length = 0
         self.outputs = False  # the running episode writes SUMO's outputs, added to its summary at its end
 
-    def _write(self, obs: dict[str, np.ndarray], alive: Sequence[str]) -> np.ndarray:
+    def _at(self, agent: str) -> int:
+        """The index of a live agent in the arrays."""
+        return self.slot_of(agent) if self.slot_of else self.index[agent]
+
+    def _write(self, obs: dict[str, np.ndarray], alive: Sequence[str], infos: dict[str, dict]
+               ) -> tuple[np.ndarray, np.ndarray]:
+        """The live agents' observations into the shared slot; returns who is alive (N,) and each live agent's
+        `action_mask` (N, A) int8 from its infos (all allowed where there is none)."""
         assert self.obs is not None
         mask = np.zeros(len(self.agents), dtype=bool)
+        masks = np.zeros((len(self.agents), self.spec.n_actions), np.int8)
         for a in alive:
-            self.obs[self.index[a]] = obs[a]
-            mask[self.index[a]] = True
+            i = self._at(a)
+            self.obs[i] = obs[a]
+            mask[i] = True
+            masks[i] = infos.get(a, {}).get("action_mask", 1)
         self.obs[~mask] = 0
-        return mask
-
-    def _masks(self, infos: dict[str, dict], alive: np.ndarray) -> np.ndarray:
-        """(N, A) int8: each live agent's `action_mask` from its infos (all allowed where there is none)."""
-        out = np.zeros((len(self.agents), self.spec.n_actions), np.int8)
-        for i in np.flatnonzero(alive):
-            out[i] = infos.get(self.agents[i], {}).get("action_mask", 1)
-        return out
+        return mask, masks
 
     def reset(self, seed: int | None, outputs: bool = False) -> StepResult:
         # Only where asked: an env of another library need not know the option.
@@ -160,21 +165,21 @@ class _EnvRunner:
         self.outputs = outputs
         self.length = 0
         n = len(self.agents)
-        alive = self._write(obs, [a for a in self.env.agents if a in obs])
-        return StepResult(alive, np.zeros(n, np.float32), np.zeros(n, bool), np.zeros(n, bool),
-                          self._masks(infos, alive))
+        alive, masks = self._write(obs, [a for a in self.env.agents if a in obs], infos)
+        return StepResult(alive, np.zeros(n, np.float32), np.zeros(n, bool), np.zeros(n, bool), masks)
 
     def step(self, actions: np.ndarray) -> StepResult:
         assert self.final is not None
         acting = list(self.env.agents)
-        obs, rew, term, trunc, infos = self.env.step({a: int(actions[self.index[a]]) for a in acting})
+        at = {a: self._at(a) for a in acting}  # before the step, which frees the slots of those it ends
+        obs, rew, term, trunc, infos = self.env.step({a: int(actions[at[a]]) for a in acting})
         self.length += 1
         n = len(self.agents)
         reward, terminated, truncated = np.zeros(n, np.float32), np.zeros(n, bool), np.zeros(n, bool)
         terms: dict[str, np.ndarray] = {}
         episode = None
         for a in acting:
-            i = self.index[a]
+            i = at[a]
             reward[i] = float(rew.get(a, 0.0))
             terminated[i] = bool(term.get(a, False))
             truncated[i] = bool(trunc.get(a, False)) and not terminated[i]  # a crash at the limit is a crash
@@ -184,8 +189,9 @@ class _EnvRunner:
             for name, value in info.get("reward_terms", {}).items():
                 terms.setdefault(name, np.zeros(n, np.float32))[i] = value
             episode = info.get("episode", episode)
-        live = [a for a in acting if a in self.env.agents and a in obs and not (term.get(a) or trunc.get(a))]
-        alive = self._write(obs, live)
+        # Agents that entered in this step (the demand env's) are live too.
+        live = [a for a in self.env.agents if a in obs and not (term.get(a) or trunc.get(a))]
+        alive, masks = self._write(obs, live, infos)
         if live:
             episode = None  # only reported when the episode is over
         elif episode is None:
@@ -193,7 +199,7 @@ class _EnvRunner:
         if episode is not None and self.outputs:
             self.env.flush_outputs()
             episode = {**episode, **self.env.sumo_outputs.pop(self.env.episode_seed).as_row()}
-        return StepResult(alive, reward, terminated, truncated, self._masks(infos, alive), terms, episode)
+        return StepResult(alive, reward, terminated, truncated, masks, terms, episode)
 
 
 def _worker_main(conn: Connection, env_factory: EnvFactory, tmp_root: str) -> None:

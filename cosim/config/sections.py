@@ -519,10 +519,11 @@ class RewardConfig(_Section):
 class TrainConfig(_Section):
     """Multi-agent actor-critic hyper-parameters. A "step" is one decision period of one env.
 
-    One update: every worker plays one whole episode (seeded by the run's seed, the update and the worker);
-    the network(s) then learn from the batch: every live AV's samples with `shared_policy` (the default),
-    the learner AV's samples with per-AV networks (the paper's semi-sequential scheme). `a2c` takes one
-    gradient step per batch (the paper's algorithm), `ppo` several epochs of clipped updates over it.
+    One update: every worker plays one whole episode (seeded by the run's seed, the update and the worker), or
+    under demand `segment_steps` decisions of its continuing run (an episode is then one run); the network(s)
+    then learn from the batch: every live AV's samples with `shared_policy` (the default), the learner AV's
+    samples with per-AV networks (the paper's semi-sequential scheme). `a2c` takes one gradient step per
+    batch (the paper's algorithm), `ppo` several epochs of clipped updates over it.
     Schedules run from the start value to the `_final` one over the run's progress: the larger of the
     fraction of `episodes` done and, with a `budget_min`, of the budget used.
     """
@@ -555,6 +556,9 @@ class TrainConfig(_Section):
     clip_range: Number = Field(0.2, ge=0, le=1, description="PPO's ratio clip [-]")
     disseminate_every: Int = Field(
         10, gt=0, description="K: updates a learner AV trains before its weights are disseminated (per AV)")
+    segment_steps: Int = Field(
+        64, gt=0, description="under demand: decisions of each worker's continuing run per update (CleanRL's "
+        "num_steps); an AV that goes on past them is bootstrapped")
     checkpoint_every: Int = Field(
         50, gt=0, description="updates between two checkpoints (one is also written at the end)")
     eval_every: Int = Field(

@@ -14,7 +14,8 @@ simulates on by itself, so `agents` is empty only once the run reaches its horiz
 truncated. Then SUMO is closed, its outputs parsed (`flow_outputs`) and, with the run's record
 (`cosim.environment.flow_record.FlowRecorder`, also in `record.npz`), kept for the metrics
 (`cosim.evaluation.flow.window_metrics`); `last_summary` holds the run's summary (the last step's infos carry it
-too). A finished agent's last observation is zeros (its slot may serve an AV that entered in the same step).
+too). A terminated agent's last observation is zeros (its slot may serve an AV that entered in the same step), a
+truncated one's its map at the horizon. `agent_slot(agent)` is a live agent's slot, `slot_names` the slots in order.
 With `sim.av_driver: sumo` SUMO drives the AVs (the all-human baseline) and actions are ignored. Live agents'
 infos carry `action_mask` as the episode env's do (`action_masks()`).
 """
@@ -116,12 +117,17 @@ class DemandEnv(SumoEnv):
             rew[a] = rewards.get(a, 0.0)
             infos[a] = {"crashed": a in crashed}
         live = [a for a in acting if not (term[a] or trunc[a])]
+        final: dict[str, np.ndarray] = {}
+        if at_end:  # every agent still in its slot: the truncated ones' last observations, to bootstrap from
+            self._update_maps(snap)
+            final = {a: self._obs(a) for a in acting if trunc[a]}
         for a in acting:
             if term[a] or trunc[a]:
                 self._release(a)
         new = [] if at_end else self._admit(snap)
         self.agents = live + new
-        self._update_maps(snap)
+        if not at_end:
+            self._update_maps(snap)
         for a in new:
             rew[a], term[a], trunc[a], infos[a] = 0.0, False, False, {}
         if not self.agents and not at_end:
@@ -129,6 +135,7 @@ class DemandEnv(SumoEnv):
         if self.steps >= self.max_steps and self.last_summary is None:
             self._finish(infos)
         obs = {a: self._obs(a) for a in set(acting) | set(self.agents)}
+        obs.update(final)
         self._add_masks(infos)
         return obs, rew, term, trunc, infos
 
@@ -176,6 +183,15 @@ class DemandEnv(SumoEnv):
             self._target[a] = float(snap.speed[snap.row_of(a)])
         return new
 
+    @property
+    def slot_names(self) -> tuple[str, ...]:
+        """The observation slots, in order: what a rollout worker indexes agents by (`agent_slot`)."""
+        return tuple(f"slot_{k}" for k in range(self.mapper.n_agents))
+
+    def agent_slot(self, agent: str) -> int:
+        """The observation slot of a live agent (KeyError for one that is not)."""
+        return self.slot[agent]
+
     def _release(self, agent: str) -> None:
         self.slot.pop(agent, None)
         self._target.pop(agent, None)
@@ -215,7 +231,7 @@ class DemandEnv(SumoEnv):
                             "area_lengths": np.asarray([a.length for a in self.sites.influence])}
         with atomic_path(self.out_dir / "record.npz") as tmp:
             np.savez_compressed(tmp, **self.last_record)
-        self.last_summary = {"seed": self.episode_seed, "length": self.steps,
-                             "avs_released": len(self.gone), "out_dir": str(self.out_dir)}
+        self.last_summary = {"seed": self.episode_seed, "length": self.steps, "avs_released": len(self.gone),
+                             "collisions": len(self.recorder.collisions), "out_dir": str(self.out_dir)}
         for info in infos.values():
             info["episode"] = self.last_summary

@@ -1,0 +1,111 @@
+"""Training under demand on real SUMO: segments of continuing runs, who is bootstrapped, runs as episodes, the CLI."""
+
+import csv
+import functools
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from agents.checkpoint import load_policy, read_checkpoint
+from agents.collect import Segments
+from agents.config import train_config
+from agents.multiagent import Batch, MultiAgentPolicy
+from agents.train import train
+from cosim.cli import main
+from cosim.config import load_config
+from cosim.environment.factory import parallel_env
+from cosim.errors import ConfigError
+from cosim.sumo.setting import Setting
+from cosim.workers import WorkerPool
+
+pytestmark = pytest.mark.sumo
+
+# Runs of 60 decisions (30 s warm-up, 30 s window) with many AVs, a small network.
+SHORT = {"demand.warmup": 30.0, "demand.window": 30.0, "demand.av_penetration": 0.3, "train.feature_dim": 16,
+         "train.head_hidden": 16, "train.precision": "float32", "train.seed": 4, "train.segment_steps": 16}
+
+
+def demand_cfg(**extra: object):
+    return load_config("configs/demand.yaml", {**SHORT, **extra})
+
+
+def test_segments_continue_each_run_and_bootstrap_the_agents_that_go_on() -> None:
+    cfg = demand_cfg()
+    pool = WorkerPool(functools.partial(parallel_env, cfg.to_dict()), 2, 0, 60.0)
+    try:
+        spec = pool.spec
+        assert spec.agents == tuple(f"slot_{k}" for k in range(Setting.of(cfg).demand.slots))
+        torch.manual_seed(0)
+        policy = MultiAgentPolicy(len(spec.agents), spec.obs_shape, spec.n_actions, train_config(cfg))
+        steps = 8
+        batch = Batch.allocate(steps, 2, len(spec.agents), spec.obs_shape, getattr(torch, spec.obs_dtype),
+                               spec.n_actions)
+        segments, seeds, episodes, checked = Segments(pool), iter(range(100, 200)), [], 0
+        left: np.ndarray | None = None  # the observations the last segment ended on
+        for update in range(10):  # 80 decisions a worker: each run of 60 ends inside a segment, the next starts
+            got = segments.collect(policy, batch, update, lambda w: next(seeds))
+            episodes += got.episodes
+            assert batch.valid.any(dim=2).all()  # every worker played every decision of the segment
+            if left is not None and not got.episodes:  # the runs went on: no reset in between
+                acting = batch.valid[0].numpy()
+                assert np.array_equal(batch.obs[0].numpy()[acting], left[acting])
+            for w in range(2):
+                seed, res = segments.runs[w]
+                if all(ep.worker != w for ep in got.episodes):  # the same run from the first decision to the last
+                    # Who acted at the last decision and goes on is cut there, bootstrapped from where it goes on.
+                    on = res.alive & batch.valid[-1, w].numpy() & ~batch.terminated[-1, w].numpy()
+                    assert on.any() and batch.truncated[-1, w].numpy()[on].all()
+                    idx = np.flatnonzero(on)
+                    expect = policy.value(torch.from_numpy(pool.obs[w, idx]), torch.from_numpy(idx), update)
+                    torch.testing.assert_close(batch.final_values[-1, w, idx], expect)
+                    checked += 1
+                # At a run's horizon every live agent is truncated with its last map, never zeros.
+                ended = batch.truncated[:-1, w].any(dim=1).nonzero().flatten()  # before the last decision
+                for t in ended.tolist():
+                    cut = batch.truncated[t, w].nonzero().flatten().numpy()
+                    assert all(pool.final[w, i].any() for i in cut)
+                    assert (batch.final_values[t, w, cut] != 0).all()
+            left = pool.obs.copy()
+        # A run of 60 decisions (the first ones simulated until an AV enters) ended on each worker within its 80;
+        # the next began with the next seed.
+        assert checked >= 15 and sorted(ep.seed for ep in episodes) == [100, 101]
+        assert all(ep.info["length"] == 60 and ep.info["avs_released"] > 0 for ep in episodes)
+        assert sorted(seed for seed, _ in segments.runs.values()) == [102, 103]
+    finally:
+        pool.close()
+
+
+def test_cosim_train_under_demand_trains_runs_resumes_and_evaluates(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    args = ["train", "--config", "configs/demand.yaml", *(f"--set={k}={v}" for k, v in SHORT.items()),
+            "--workers", "2", "--out", str(run)]
+    assert main([*args, "--episodes", "2"]) == 0
+    with (run / "episodes.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 2 and all(float(r["avs_released"]) > 0 and r["collisions"] != "" for r in rows)
+    assert read_checkpoint(run / "checkpoint.pt")["spec"]["agents"][0] == "slot_0"
+    assert main([*args, "--episodes", "4", "--resume"]) == 0
+    with (run / "episodes.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 4 and len({r["seed"] for r in rows}) == 4  # a resumed run plays new runs
+    policies, _ = load_policy(run)
+    assert len(set(map(id, policies.values()))) == 1  # one shared network
+    out = tmp_path / "eval"
+    assert main(["evaluate", "--run", str(run), "--config", "configs/demand.yaml",
+                 *(f"--set={k}={v}" for k, v in SHORT.items() if k.startswith("demand")),
+                 "--set", "demand.seeds=1", "--out", str(out)]) == 0
+    assert (out / "summary.json").is_file()
+
+
+@pytest.mark.parametrize("key,value,says", [
+    ("train.shared_policy", False, "train.shared_policy: false: under demand"),
+    ("train.eval_every", 10, "train.eval_every: 10: validation during training"),
+    ("train.segment_steps", 60, r"train.segment_steps: 60 decisions, not shorter than a run \(60 decisions"),
+])
+def test_what_demand_training_cannot_do_is_refused_in_one_line(tmp_path: Path, key: str, value: object,
+                                                                   says: str) -> None:
+    with pytest.raises(ConfigError, match=says):
+        train(demand_cfg(**{key: value}), tmp_path / "run", progress=False)
+    assert not (tmp_path / "run").exists()
