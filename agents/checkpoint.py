@@ -42,6 +42,7 @@ import torch
 from pettingzoo import ParallelEnv
 
 from agents.model import ActorCritic
+from agents.validation import describe
 from cosim.errors import CosimError
 from cosim.files import atomic_path
 
@@ -316,9 +317,8 @@ def describe_checkpoint(path: Path) -> str:
     what = f"{path}, trained {trained}" if trained else str(path)
     if row is None:
         return what
-    return (f"{what}, the best validation of its run ({int(row['episodes_validated'])} greedy episodes on the "
-            f"validation seeds: crash {row['crash']:.1f}% [{row['crash_low']:.1f}, {row['crash_high']:.1f}], merge "
-            f"{row['merge']:.1f}% [{row['merge_low']:.1f}, {row['merge_high']:.1f}])")
+    return (f"{what}, the best validation of its run ({int(row['episodes_validated'])} greedy "
+            f"{'runs' if 'collisions' in row else 'episodes'} on the validation seeds: {describe(row)})")
 
 
 def find_checkpoint(run: Path | None, checkpoint: Path | None, last: bool = False) -> Path:

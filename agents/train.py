@@ -66,7 +66,7 @@ from agents.config import TrainConfig, check_device, train_config
 from agents.logs import RunLogger, cut_logs, log_gaps
 from agents.multiagent import Batch, MultiAgentPolicy
 from agents.rollout import Backend
-from agents.validation import better, summarize, validate, validation_seeds
+from agents.validation import better, describe, summarize, validate, validation_seeds
 from cosim.config import EVAL_SEED_START, Config, SafetyConfig, read_yaml
 from cosim.errors import ConfigError, EpisodeError, NetError
 from cosim.files import FolderLock, FolderState, atomic_write_text, stale_temporaries
@@ -83,7 +83,8 @@ NET_RECORD = "net.json"  # the net a run trains on (path, sha256, summary) and t
 # The env's summary keys an episodes.csv row carries: of an episode, and of a run under demand.
 EPISODE_KEYS = ("crashed", "merged", "mean_distance", "merger_distance", "length", "cause_av", "cause_hv_into_av",
                 "cause_merger")
-DEMAND_KEYS = ("length", "avs_released", "collisions")
+DEMAND_KEYS = ("length", "avs_released", "collisions", "collisions_window", "merge_rate_pct", "crash_rate_pct",
+               "throughput_total_vph", "delay_mean_s")
 
 
 @dataclass(frozen=True)
@@ -190,7 +191,7 @@ def _check_memory(cfg: Config, tc: TrainConfig, backend: Backend) -> None:
 
 
 def _check_demand(cfg: Config, tc: TrainConfig) -> None:
-    """What training under demand cannot do yet, or at all, refused before anything starts."""
+    """What training under demand cannot do, refused before anything starts."""
     demand = Setting.of(cfg).demand
     assert demand is not None
     decisions = max(1, round(demand.horizon / cfg.sim.decision_period))
@@ -200,10 +201,6 @@ def _check_demand(cfg: Config, tc: TrainConfig) -> None:
     if not tc.shared_policy:
         raise ConfigError("train.shared_policy: false: under demand AVs come and go, each a new agent; one network "
                           "per AV has no AV to belong to: set train.shared_policy: true")
-    if tc.eval_every:
-        raise ConfigError(f"train.eval_every: {tc.eval_every}: validation during training runs on the episode "
-                          "scenario only so far; under demand set train.eval_every: 0 (configs/demand.yaml does) and "
-                          "evaluate the run's policy.pt with cosim evaluate --run RUN --config configs/demand.yaml")
 
 
 def _default_env_factory(cfg: Config) -> EnvFactory:
@@ -570,11 +567,12 @@ class _Run:
             self.best = row
             with StopRequest.held():
                 save_policy(self.out_dir / BEST_NAME, self.payload(), validation=row)
-        log.info("validation at episode %d (%d greedy episodes, %.0f s): crash %.1f%% [%.1f, %.1f], merge %.1f%% "
-                 "[%.1f, %.1f], conflicts %.2f per episode, return %.1f%s", c["episodes"], fig["episodes_validated"],
-                 spent, fig["crash"], fig["crash_low"], fig["crash_high"], fig["merge"], fig["merge_low"],
-                 fig["merge_high"], fig["conflicts"], fig["return"],
+        what = "runs" if self.demand else "episodes"
+        log.info("validation at %s %d (%d greedy %s, %.0f s): %s%s", what[:-1], c["episodes"],
+                 fig["episodes_validated"], what, spent, describe(fig),
                  f"; best so far, kept as {BEST_NAME}" if best else "")
+        if self.segments is not None:  # validation reset the workers: the next segment starts new runs
+            self.segments.drop()
         self.checkpoint()
 
     def payload(self, copy_policy: bool = False) -> dict[str, Any]:

@@ -11,10 +11,15 @@ Contract:
   episode summary, as `episodes.csv` and `cosim evaluate` have it) carries its SSM conflicts. A worker that fails
   plays its episode again on its replacement; a second failure of the same seed is `EpisodeError`. The rows come
   back in seed order, each with the AVs' mean greedy return (`av_return`).
+- Under demand an episode is a run (warm-up and window) with its window's flow metrics in its row, and the
+  return is per AV released, as `episodes.csv`'s.
 - `summarize(rows)` gives a validation's figures: crash and merge success [%] with Wilson intervals, conflicts,
-  the merging vehicle's distance and the return with t-intervals (`cosim.evaluation.stats`).
-- `better(new, best)` is the rule that keeps `best.pt`: the lower upper bound of the crash rate; at equal bounds
-  (the same crash count), the higher mean return, which is what the run optimises at its SVO angle.
+  the merging vehicle's distance and the return with t-intervals (`cosim.evaluation.stats`); under demand the
+  window's collisions, merge success per merging vehicle, throughput and delay per vehicle, with t-intervals over
+  the runs (`DEMAND_FIGURES`).
+- `better(new, best)` is the rule that keeps `best.pt`: the lower upper bound of the crash rate (under demand: of
+  the collisions per window); at equal bounds (the same crash count; no collision), the higher mean return, which
+  is what the run optimises at its SVO angle.
 """
 
 from __future__ import annotations
@@ -35,6 +40,11 @@ from cosim.workers import StepResult, WorkerPool
 # Validation's figures (validation.csv and TensorBoard name) -> the label of `cosim evaluate`'s summary.
 FIGURES: dict[str, str] = {"crash": "crash [%]", "merge": "merge success [%]", "conflicts": "conflicts [per episode]",
                            "merger_distance": "merger distance [m]"}
+# ... of a validation under demand -> the label of `cosim evaluate`'s summary of demand runs.
+DEMAND_FIGURES: dict[str, str] = {"collisions": "collisions [per window]",
+                                  "merge": "merge success, per merging vehicle [%]",
+                                  "throughput": "throughput, total [veh/h]", "delay": "delay per vehicle [s]"}
+
 
 def validation_seeds(episodes: int) -> list[int]:
     return [VALIDATION_SEED_START + k for k in range(episodes)]
@@ -71,8 +81,10 @@ def validate(pool: WorkerPool, policy: MultiAgentPolicy, seeds: Sequence[int], u
                 continue
             returns[w] += res.reward
             if res.episode is not None:
-                # Per AV, as episodes.csv's return_mean (agents.train).
-                rows[seed] = {**res.episode, "seed": seed, "av_return": float(returns[w].mean())}
+                # Per AV, as episodes.csv's return_mean (agents.train); under demand per AV that came and went.
+                avs = res.episode.get("avs_released")
+                ret = returns[w].sum() / max(int(avs), 1) if avs is not None else returns[w].mean()
+                rows[seed] = {**res.episode, "seed": seed, "av_return": float(ret)}
                 if todo:
                     playing[w] = todo.pop()
                     restart.append(w)
@@ -106,11 +118,13 @@ def _act_greedy(pool: WorkerPool, policy: MultiAgentPolicy, live: list[tuple[int
 
 def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95) -> dict[str, float]:
     """One validation's figures: `<name>`, `<name>_low`, `<name>_high` for each of `FIGURES` (the intervals of
-    `cosim evaluate`'s summary) and the AVs' mean greedy `return`, and `episodes_validated`."""
-    metrics = stats.summarize(rows, confidence, {label: stats.SUMMARY_METRICS[label] for label in FIGURES.values()})
+    `cosim evaluate`'s summary) and the AVs' mean greedy `return`, and `episodes_validated`; of `DEMAND_FIGURES`
+    for demand runs' rows."""
+    figures, known = ((DEMAND_FIGURES, stats.FLOW_METRICS) if is_demand(rows) else (FIGURES, stats.SUMMARY_METRICS))
+    metrics = stats.summarize(rows, confidence, {label: known[label] for label in figures.values()})
     ret = stats.mean_ci([float(r["av_return"]) for r in rows], confidence)
     out: dict[str, float] = {"episodes_validated": float(len(rows))}
-    for name, label in FIGURES.items():
+    for name, label in figures.items():
         got = metrics.get(label, {"mean": math.nan, "ci_low": math.nan, "ci_high": math.nan})
         out[name], out[f"{name}_low"], out[f"{name}_high"] = got["mean"], got["ci_low"], got["ci_high"]
     out["return"], out["return_low"], out["return_high"] = ret.mean, ret.low, ret.high
@@ -121,9 +135,27 @@ def better(new: Mapping[str, float], best: Mapping[str, float] | None) -> bool:
     """Whether validation `new` beats the best so far (module doc: crash upper bound, then return)."""
     if best is None:
         return True
-    if new["crash_high"] != best["crash_high"]:
-        return new["crash_high"] < best["crash_high"]
+    bound = "crash_high" if "crash_high" in new else "collisions_high"
+    if new[bound] != best[bound]:
+        return new[bound] < best[bound]
     return new["return"] > best["return"]
+
+
+def is_demand(rows: Sequence[Mapping[str, Any]]) -> bool:
+    """Whether validation rows are demand runs' (their window's flow metrics) rather than episodes'."""
+    return bool(rows) and "throughput_total_vph" in rows[0]
+
+
+def describe(fig: Mapping[str, float]) -> str:
+    """One validation's figures in words, for the training log."""
+    if "collisions" in fig:
+        return (f"collisions {fig['collisions']:.2f} [{fig['collisions_low']:.2f}, {fig['collisions_high']:.2f}] per "
+                f"window, merge {fig['merge']:.1f}% [{fig['merge_low']:.1f}, {fig['merge_high']:.1f}], throughput "
+                f"{fig['throughput']:.0f} veh/h [{fig['throughput_low']:.0f}, {fig['throughput_high']:.0f}], delay "
+                f"{fig['delay']:.1f} s per vehicle, return {fig['return']:.1f}")
+    return (f"crash {fig['crash']:.1f}% [{fig['crash_low']:.1f}, {fig['crash_high']:.1f}], merge {fig['merge']:.1f}% "
+            f"[{fig['merge_low']:.1f}, {fig['merge_high']:.1f}], conflicts {fig['conflicts']:.2f} per episode, "
+            f"return {fig['return']:.1f}")
 
 
 # The criterion of a safe policy (issue 29), on one validation's figures: crash at most 2% with an upper bound at

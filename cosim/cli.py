@@ -166,12 +166,9 @@ def _run_scenario(args: argparse.Namespace) -> int:
                     env.step(policy(env))
                 s = env.last_summary
                 if env.cfg.demand.enabled:  # a run of minutes under demand: its window's flow
-                    from cosim.evaluation.flow import run_row
-
-                    f = run_row(env)
                     log.info("%-8s seed %-4d throughput %4.0f veh/h (ramp %4.0f)  delay %5.1f s  ramp queue %4.1f veh  "
-                             "LOS %s  (%d AVs)", name, s["seed"], f["throughput_total_vph"], f["throughput_ramp_vph"],
-                             f["delay_mean_s"], f["ramp_queue_mean_veh"], f["los"], s["avs_released"])
+                             "LOS %s  (%d AVs)", name, s["seed"], s["throughput_total_vph"], s["throughput_ramp_vph"],
+                             s["delay_mean_s"], s["ramp_queue_mean_veh"], s["los"], s["avs_released"])
                     continue
                 log.info("%-8s seed %-4d crash %-5s merge %-5s mean distance %6.1f m  merger %6.1f m  (%d steps)",
                          name, s["seed"], s["crashed"], s["merged"], s["mean_distance"], s["merger_distance"],

@@ -196,9 +196,10 @@ class _EnvRunner:
             episode = None  # only reported when the episode is over
         elif episode is None:
             episode = {"length": self.length}
-        if episode is not None and self.outputs:
+        if episode is not None and self.outputs:  # the episode env's SUMO outputs; a demand run's are in its summary
             self.env.flush_outputs()
-            episode = {**episode, **self.env.sumo_outputs.pop(self.env.episode_seed).as_row()}
+            sumo = self.env.sumo_outputs.pop(self.env.episode_seed, None)
+            episode = {**episode, **(sumo.as_row() if sumo is not None else {})}
         return StepResult(alive, reward, terminated, truncated, masks, terms, episode)
 
 

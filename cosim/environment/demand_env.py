@@ -12,8 +12,8 @@ vehicle's merge term on the step it reaches a through lane). A collision takes t
 after its decision step (an AV in it terminates) and the run goes on. Between AVs, when none is present, the env
 simulates on by itself, so `agents` is empty only once the run reaches its horizon, where every live agent is
 truncated. Then SUMO is closed, its outputs parsed (`flow_outputs`) and, with the run's record
-(`cosim.environment.flow_record.FlowRecorder`, also in `record.npz`), kept for the metrics
-(`cosim.evaluation.flow.window_metrics`); `last_summary` holds the run's summary (the last step's infos carry it
+(`cosim.environment.flow_record.FlowRecorder`, also in `record.npz`), kept; `last_summary` holds the run's summary
+with its window's flow metrics (`cosim.environment.flow_metrics.window_metrics`; the last step's infos carry it
 too). A terminated agent's last observation is zeros (its slot may serve an AV that entered in the same step), a
 truncated one's its map at the horizon. `agent_slot(agent)` is a live agent's slot, `slot_names` the slots in order.
 With `sim.av_driver: sumo` SUMO drives the AVs (the all-human baseline) and actions are ignored. Live agents'
@@ -30,6 +30,7 @@ import numpy as np
 
 from cosim.config import Config
 from cosim.environment.base import Step, SumoEnv
+from cosim.environment.flow_metrics import window_metrics
 from cosim.environment.flow_record import FlowRecorder
 from cosim.environment.reward import StepChange, svo_rewards, utility_terms, weighted_utility
 from cosim.environment.velocity_map import VelocityMapper, rasterize_road
@@ -231,7 +232,13 @@ class DemandEnv(SumoEnv):
                             "area_lengths": np.asarray([a.length for a in self.sites.influence])}
         with atomic_path(self.out_dir / "record.npz") as tmp:
             np.savez_compressed(tmp, **self.last_record)
+        desc = self.net.desc
+        after = desc.highway[desc.highway.index(desc.merge_edge) + 1]
+        flow = window_metrics(self.last_outputs, self.last_record, d, self.sites,
+                              lanes_after=len(self.net.through_lanes(after)),
+                              vehicle_gap=self.cfg.merger.length + self.cfg.merger.min_gap,
+                              interval=self.cfg.demand.interval)
         self.last_summary = {"seed": self.episode_seed, "length": self.steps, "avs_released": len(self.gone),
-                             "collisions": len(self.recorder.collisions), "out_dir": str(self.out_dir)}
+                             "collisions": len(self.recorder.collisions), "out_dir": str(self.out_dir), **flow}
         for info in infos.values():
             info["episode"] = self.last_summary

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from matplotlib.figure import Figure
 
-from cosim.evaluation.flow import LOS_BOUNDS, PER_MILE
+from cosim.environment.flow_metrics import LOS_BOUNDS, PER_MILE
 from cosim.evaluation.plots import CRASH_COLOR, add_caption, bars, save
 from cosim.evaluation.store import read_summary
 from cosim.sumo.flow_outputs import read_flow_outputs

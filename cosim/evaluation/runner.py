@@ -50,12 +50,11 @@ from tqdm import tqdm
 
 from cosim.config import EVAL_SEED_START, VALIDATION_SEED_START, Config, load_config
 from cosim.environment.control import Action
-from cosim.environment.demand_env import DemandEnv
 from cosim.environment.factory import parallel_env
+from cosim.environment.flow_metrics import demand_setting, demand_summary
 from cosim.environment.merge_env import MergeEnv
 from cosim.environment.policies import POLICIES
 from cosim.errors import ConfigError, CosimError, EpisodeError, check_at_least
-from cosim.evaluation.flow import demand_setting, demand_summary, run_row
 from cosim.evaluation.store import config_hash, save_trajectory, scenario_hash, summarize_evaluation
 from cosim.files import AppendCsv, FolderLock, FolderState, atomic_write_text, read_csv, write_json
 from cosim.progress import Heartbeat
@@ -200,8 +199,6 @@ class Runner:
         env.flush_outputs()
         row = {"seed": seed, "policy": self.job.policy.name, **env.last_summary,
                "av_return": float(np.mean(list(returns.values()))) if returns else math.nan}
-        if isinstance(env, DemandEnv):
-            row.update(run_row(env))
         if view is not None and view.video:
             title = f"{self.job.policy.name}, episode seed {seed}"
             self.video = view.write(Path(self.job.video_dir) / f"video_seed_{seed}", title)

@@ -54,7 +54,7 @@ SUMMARY_METRICS: dict[str, tuple[str, float]] = {
     "hard braking, AVs [events per episode]": ("hard_brakes_av", 1.0),
     "hard braking, merging vehicle [events per episode]": ("hard_brakes_merger", 1.0),
 }
-# A demand run's window (cosim.evaluation.flow.window_metrics), one row per seed: t-intervals over the seeds.
+# A demand run's window (cosim.environment.flow_metrics.window_metrics), one row per seed: t-intervals over the seeds.
 FLOW_METRICS: dict[str, tuple[str, float]] = {
     "throughput, total [veh/h]": ("throughput_total_vph", 1.0),
     "throughput, mainline [veh/h]": ("throughput_mainline_vph", 1.0),

@@ -77,14 +77,21 @@ def test_segments_continue_each_run_and_bootstrap_the_agents_that_go_on() -> Non
         pool.close()
 
 
-def test_cosim_train_under_demand_trains_runs_resumes_and_evaluates(tmp_path: Path) -> None:
+def test_cosim_train_under_demand_trains_runs_validates_resumes_and_evaluates(tmp_path: Path) -> None:
     run = tmp_path / "run"
     args = ["train", "--config", "configs/demand.yaml", *(f"--set={k}={v}" for k, v in SHORT.items()),
-            "--workers", "2", "--out", str(run)]
+            "--set=train.eval_every=2", "--set=train.eval_episodes=2", "--workers", "2", "--out", str(run)]
     assert main([*args, "--episodes", "2"]) == 0
     with (run / "episodes.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 2 and all(float(r["avs_released"]) > 0 and r["collisions"] != "" for r in rows)
+    assert all(float(r["throughput_total_vph"]) > 0 for r in rows)  # each run's window flow, as evaluation's
+    # Validated on greedy runs of the validation seeds: the window's collisions, merges, throughput and delay.
+    with (run / "validation.csv").open() as f:
+        (val,) = list(csv.DictReader(f))
+    assert float(val["episodes_validated"]) == 2 and float(val["throughput"]) > 0
+    assert float(val["collisions_low"]) <= float(val["collisions"]) <= float(val["collisions_high"])
+    assert {"merge", "delay", "return"} <= set(val) and (run / "best.pt").is_file()
     assert read_checkpoint(run / "checkpoint.pt")["spec"]["agents"][0] == "slot_0"
     assert main([*args, "--episodes", "4", "--resume"]) == 0
     with (run / "episodes.csv").open() as f:
@@ -101,7 +108,6 @@ def test_cosim_train_under_demand_trains_runs_resumes_and_evaluates(tmp_path: Pa
 
 @pytest.mark.parametrize("key,value,says", [
     ("train.shared_policy", False, "train.shared_policy: false: under demand"),
-    ("train.eval_every", 10, "train.eval_every: 10: validation during training"),
     ("train.segment_steps", 60, r"train.segment_steps: 60 decisions, not shorter than a run \(60 decisions"),
 ])
 def test_what_demand_training_cannot_do_is_refused_in_one_line(tmp_path: Path, key: str, value: object,

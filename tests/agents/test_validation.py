@@ -40,6 +40,9 @@ def test_best_is_the_lowest_crash_upper_bound_then_the_highest_return() -> None:
     assert better({"crash_high": 8.0, "return": 1.0}, first)  # fewer crashes beat a higher return
     assert not better({"crash_high": 12.0, "return": 50.0}, first)
     assert better({"crash_high": 10.0, "return": 6.0}, first) and not better({"crash_high": 10.0, "return": 4.0}, first)
+    runs = {"collisions_high": 0.0, "return": 5.0}  # under demand: collisions per window, then the return
+    assert better({"collisions_high": 0.0, "return": 6.0}, runs) and not better({"collisions_high": 1.0,
+                                                                                  "return": 50.0}, runs)
 
 
 def test_the_criterion_asks_safety_of_every_policy_and_merges_of_altruistic_ones() -> None:
@@ -110,3 +113,14 @@ def test_validation_does_not_change_what_the_run_learns(tmp_path: Path) -> None:
     assert not (without / "validation.csv").exists() and not (without / BEST_NAME).exists()
     a, b = (load_policy(run / POLICY_NAME)[0]["av_0"].state_dict() for run in (with_it, without))
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_a_validation_under_demand_gives_the_windows_flow_over_the_runs() -> None:
+    rows = [{"throughput_total_vph": q, "collisions_window": k, "merge_rate_pct": m, "delay_mean_s": d,
+             "av_return": r} for q, k, m, d, r in [(3000.0, 0, 100.0, 40.0, 20.0), (3200.0, 2, 90.0, 60.0, 10.0),
+                                                    (3100.0, 1, 95.0, 50.0, 15.0)]]
+    fig = summarize(rows)
+    assert fig["throughput"] == pytest.approx(3100.0) and fig["throughput_low"] < 3100.0 < fig["throughput_high"]
+    assert fig["collisions"] == pytest.approx(1.0) and fig["collisions_low"] == 0.0  # a count's interval cut at 0
+    assert fig["merge"] == pytest.approx(95.0) and fig["delay"] == pytest.approx(50.0)
+    assert "crash" not in fig and fig["return"] == pytest.approx(15.0)

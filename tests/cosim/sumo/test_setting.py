@@ -8,7 +8,7 @@ import pytest
 import cosim.sumo.setting as setting_module
 from cosim.config import load_config
 from cosim.environment.factory import parallel_env
-from cosim.evaluation.flow import demand_setting
+from cosim.environment.flow_metrics import demand_setting
 from cosim.sumo.setting import Setting
 
 pytestmark = pytest.mark.sumo

@@ -10,8 +10,8 @@ import pytest
 
 from cosim.config import load_config
 from cosim.environment.episode import MergeZone
+from cosim.environment.flow_metrics import level_of_service, window_metrics
 from cosim.environment.flow_record import FlowRecorder
-from cosim.evaluation.flow import level_of_service, window_metrics
 from cosim.sumo.demand import freeway_capacity, ramp_capacity, resolve_demand
 from cosim.sumo.flow_outputs import flow_output_args, flow_sites, read_flow_outputs
 from cosim.sumo.net import load_net

@@ -1,7 +1,7 @@
 """A demand run's traffic-engineering metrics over its measurement window, from SUMO's outputs and the run's record.
 
 Contract: `window_metrics(out, rec, demand, sites, ...)` returns one row (a dict, as `episodes.csv` holds one per seed
-in demand mode; `run_row(env)` takes all of it from a `DemandEnv` after its run), every figure over the window
+in demand mode; a `DemandEnv`'s run summary carries it), every figure over the window
 [warmup, horizon] only:
 - throughput [veh/h]: vehicles leaving the merge area (the instant loops past the acceleration lane), in total and
   by origin (`merger_*` came up the ramp, the rest along the highway);
@@ -126,15 +126,6 @@ def window_metrics(out: FlowOutputs, rec: Mapping[str, np.ndarray], demand: Dema
                                                           & (rec["collision_times"] < w1))),
                 "avs_present_max": int(rec["avs_present"].max()) if len(rec["avs_present"]) else 0})
     return row
-
-
-def run_row(env: Any) -> dict[str, Any]:
-    """`window_metrics` of the run a `cosim.environment.demand_env.DemandEnv` has just finished."""
-    desc = env.net.desc
-    after = desc.highway[desc.highway.index(desc.merge_edge) + 1]
-    return window_metrics(env.last_outputs, env.last_record, env.demand, env.sites,
-                          lanes_after=len(env.net.through_lanes(after)),
-                          vehicle_gap=env.cfg.merger.length + env.cfg.merger.min_gap, interval=env.cfg.demand.interval)
 
 
 def demand_summary(rows: list[Mapping[str, Any]], metrics: Mapping[str, Mapping[str, float]]) -> dict[str, Any]:
