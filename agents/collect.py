@@ -214,9 +214,10 @@ class Segments:
                         self.sums[w] = (reward + float(res.reward.sum()), terms)
                     if res.episode is not None:  # the run reached its horizon: the next one starts at once
                         reward, terms = self.sums.pop(w)
-                        avs = max(int(res.episode.get("avs_released", 0)), 1)  # per AV, as an episode's return
-                        out.episodes.append(Episode(w, seeds[w], res.episode, np.array([reward / avs]),
-                                                    {k: np.array([v / avs]) for k, v in terms.items()}))
+                        out.episodes.append(Episode(w, seeds[w], res.episode,
+                                                    np.array([per_av_released(reward, res.episode)]),
+                                                    {k: np.array([per_av_released(v, res.episode)])
+                                                     for k, v in terms.items()}))
                         restart.append(w)
                     elif step[w] >= steps:  # the segment is complete; the run goes on in the next one
                         if stepped:
@@ -234,6 +235,11 @@ class Segments:
                     _act(pool, policy, batch, live, step, update)
         out.samples = int(batch.valid.sum())
         return out
+
+
+def per_av_released(total: float, run: dict[str, Any]) -> float:
+    """A demand run's summed reward (or term) per AV it released, as an episode's return is per AV."""
+    return total / max(int(run["avs_released"]), 1)
 
 
 def _bootstrap(policy: MultiAgentPolicy, batch: Batch, source: Any, cut: list[tuple[int, int, int]],

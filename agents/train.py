@@ -172,13 +172,14 @@ def _check_net_unchanged(record: Path, where: dict[str, Any]) -> None:
                     record, where["net"]["file"], before[:12], where["net"]["sha256"][:12])
 
 
-def _check_memory(cfg: Config, tc: TrainConfig, backend: Backend) -> None:
+def _check_memory(cfg: Config, tc: TrainConfig, backend: Backend, setting: Setting | None) -> None:
     """A run whose batch and (local) worker processes need more memory than this machine has is refused before any
     of it is allocated or started."""
     obs = cfg.observation
     values = math.prod(obs.shape)
     if cfg.demand.enabled:
-        steps, agents, who = tc.segment_steps, Setting.of(cfg).demand.slots, "AV slots"
+        assert setting is not None and setting.demand is not None
+        steps, agents, who = tc.segment_steps, setting.demand.slots, "AV slots"
     else:
         steps, agents, who = max(1, round(cfg.sim.horizon / cfg.sim.decision_period)), cfg.scenario.n_avs, "AVs"
     batch = steps * tc.workers * agents * values * np.dtype(obs.dtype).itemsize
@@ -190,11 +191,10 @@ def _check_memory(cfg: Config, tc: TrainConfig, backend: Backend) -> None:
                         "scenario.n_avs or the observation's size")
 
 
-def _check_demand(cfg: Config, tc: TrainConfig) -> None:
+def _check_demand(setting: Setting, tc: TrainConfig) -> None:
     """What training under demand cannot do, refused before anything starts."""
-    demand = Setting.of(cfg).demand
-    assert demand is not None
-    decisions = max(1, round(demand.horizon / cfg.sim.decision_period))
+    assert setting.demand is not None
+    decisions = max(1, round(setting.demand.horizon / setting.config.sim.decision_period))
     if tc.segment_steps >= decisions:
         raise ConfigError(f"train.segment_steps: {tc.segment_steps} decisions, not shorter than a run ({decisions} "
                           f"decisions of demand.warmup + demand.window); give fewer")
@@ -310,14 +310,16 @@ class _Run:
             raise ConfigError(f"--init-from {init_from}: starts a new run; --resume continues one from its own "
                               "checkpoint: give one of the two")
         start = load_policy(init_from) if init_from is not None else None  # a bad file fails here, at once
+        # The config on its net, resolved once: the demand's checks and the run's record read it.
+        setting = Setting.of(cfg) if cfg.demand.enabled or env_factory is None else None
         tc = train_config(cfg)
-        if cfg.demand.enabled:
-            _check_demand(cfg, tc)
+        if setting is not None and setting.demand is not None:
+            _check_demand(setting, tc)
         tc = tc.model_copy(update={"workers": workers or tc.workers, "episodes": episodes or tc.episodes,
                                    "budget_min": tc.budget_min if budget_min is None else budget_min,
                                    "device": device or tc.device})
         check_device(tc.device, "--device")
-        _check_memory(cfg, tc, backend)
+        _check_memory(cfg, tc, backend, setting)
         if tc.device.startswith("cuda") and not torch.cuda.is_available():
             raise ConfigError(f"--device {tc.device}: CUDA is not available on this machine")
         if out_dir.exists() and not out_dir.is_dir():
@@ -348,7 +350,7 @@ class _Run:
                 logged_every = int(payload.get("train", {}).get("log_every", tc.log_every))
                 for gap in log_gaps(out_dir, int(counters["updates"]), int(counters["episodes"]), logged_every):
                     log.warning("%s", gap)
-            where = Setting.of(cfg).record(overrides) if env_factory is None else None  # the merge env's: its net
+            where = setting.record(overrides) if setting is not None and env_factory is None else None
             if where is not None and resume:
                 _check_net_unchanged(out_dir / NET_RECORD, where)
             if where is not None and start is not None:

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from agents.collect import per_av_released
 from agents.multiagent import MultiAgentPolicy
 from cosim.config import VALIDATION_SEED_START
 from cosim.errors import EpisodeError
@@ -82,8 +83,8 @@ def validate(pool: WorkerPool, policy: MultiAgentPolicy, seeds: Sequence[int], u
             returns[w] += res.reward
             if res.episode is not None:
                 # Per AV, as episodes.csv's return_mean (agents.train); under demand per AV that came and went.
-                avs = res.episode.get("avs_released")
-                ret = returns[w].sum() / max(int(avs), 1) if avs is not None else returns[w].mean()
+                demand = "avs_released" in res.episode
+                ret = per_av_released(returns[w].sum(), res.episode) if demand else returns[w].mean()
                 rows[seed] = {**res.episode, "seed": seed, "av_return": float(ret)}
                 if todo:
                     playing[w] = todo.pop()
@@ -135,7 +136,7 @@ def better(new: Mapping[str, float], best: Mapping[str, float] | None) -> bool:
     """Whether validation `new` beats the best so far (module doc: crash upper bound, then return)."""
     if best is None:
         return True
-    bound = "crash_high" if "crash_high" in new else "collisions_high"
+    bound = "collisions_high" if "collisions_high" in new else "crash_high"
     if new[bound] != best[bound]:
         return new[bound] < best[bound]
     return new["return"] > best["return"]
