@@ -4,10 +4,10 @@
     python scripts/demand_levels.py --net my.net.xml --out runs/my_levels
 
 Evaluates `idle`, `scripted`, `courteous` and `sumo` in `configs/demand.yaml`'s demand mode at three levels
-(`LEVELS`: light, near capacity, over capacity; demands as shares of the HCM capacities, so the same levels on
-any net), on the same evaluation seeds, each (level, policy) a resumable `cosim evaluate`; writes OUT/levels.md
-(one table per level, with its demand, the capacity it is judged against and the level of service) and
-OUT/levels.json.
+(`cosim.config.DEMAND_LEVELS`: light, near capacity, over capacity; demands as shares of the HCM capacities, so
+the same levels on any net), on the same evaluation seeds, each (level, policy) a resumable `cosim evaluate`;
+writes OUT/levels.md (one table per level, with its demand, the capacity it is judged against and the level of
+service) and OUT/levels.json.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 
 from cosim.cli import add_config_arguments, config_overrides
-from cosim.config import DEFAULT_CONFIG, EVAL_SEED_START, load_config
+from cosim.config import DEFAULT_CONFIG, DEMAND_LEVELS, EVAL_SEED_START, load_config
 from cosim.errors import run_script
 from cosim.evaluation.checknet import POLICIES
 from cosim.evaluation.runner import Baseline, evaluate
@@ -27,8 +27,6 @@ from cosim.evaluation.stats import FLOW_METRICS, format_table
 from cosim.files import atomic_write_text
 
 log = logging.getLogger("demand_levels")
-# name -> (mainline share of a lane's capacity, ramp share of the ramp's)
-LEVELS = {"light": (0.35, 0.25), "near capacity": (0.75, 0.45), "over capacity": (0.9, 0.6)}
 
 
 def main() -> None:
@@ -44,7 +42,7 @@ def main() -> None:
     t0 = time.perf_counter()
     result: dict[str, dict] = {}
     lines = [f"# Baselines under three demand levels: {base.net.file}", ""]
-    for level, (mainline, ramp) in LEVELS.items():
+    for level, (mainline, ramp) in DEMAND_LEVELS.items():
         cfg = load_config(base, {"demand.mainline_share": mainline, "demand.ramp_share": ramp})
         summaries = {p: evaluate(cfg, Baseline(p), args.out / level.replace(" ", "_") / p, episodes=seeds,
                                  seed=EVAL_SEED_START, workers=args.workers, plots=p == "courteous")

@@ -47,6 +47,7 @@ from cosim.config.types import (
     CHANNELS,
     DEFAULT_CONFIG,
     DEFAULT_NET,
+    DEMAND_LEVELS,
     EVAL_SEED_START,
     LC_PARAMS,
     MAX_OBSERVATION_VALUES,

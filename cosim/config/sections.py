@@ -220,10 +220,10 @@ def _whole_multiple(key: str, value: float, unit_key: str, unit: float, units: s
 
 class SafetyConfig(_Section):
     """Surrogate safety measures beside crashes, as traffic-safety engineers count them, per episode of the episode
-    env (not in demand mode). With `sim.outputs` (every evaluation) SUMO's SSM device rides in every vehicle and
-    logs each conflict, an encounter in which a measure passes its threshold, with its worst value
-    (`cosim.sumo.outputs.read_ssm`); hard braking is counted from the snapshots, so every episode has it
-    (`cosim.environment.tracker`)."""
+    env and, in demand mode, the conflicts over the measurement window. With `sim.outputs` (every evaluation) SUMO's
+    SSM device rides in every vehicle and logs each conflict, an encounter in which a measure passes its threshold,
+    with its worst value (`cosim.sumo.outputs.read_ssm`); hard braking is counted from the episode env's snapshots,
+    so every episode has it (`cosim.environment.tracker`)."""
 
     ssm: StrictBool = Field(
         True, description="SUMO's SSM device with sim.outputs (about a third more time per episode); false: no "

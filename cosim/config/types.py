@@ -34,6 +34,10 @@ from pydantic import (
 from cosim.config.errors import _problem, _show
 from cosim.errors import ConfigError, SeedError
 
+# Demand levels as (mainline share of a lane's capacity, ramp share of the ramp's): light, near capacity (level of
+# service E in the merge influence area), over capacity (F); shares of the HCM capacities, so the same on any net.
+DEMAND_LEVELS: dict[str, tuple[float, float]] = {
+    "light": (0.35, 0.25), "near capacity": (0.75, 0.45), "over capacity": (0.9, 0.6)}
 # A stacked VelocityMap of the paper's size vs one that trains on a CPU; user keys override a preset.
 OBSERVATION_PRESETS: dict[str, dict[str, Any]] = {
     "default": {"frames": 5, "height_px": 32, "width_px": 128, "length_m": 128.0, "width_m": 32.0},

@@ -60,6 +60,8 @@ class DemandEnv(SumoEnv):
                                     max(self.demand.slots, 1)))
         self.max_steps = max(1, round(self.demand.horizon / config.sim.decision_period))
         self._phi = float(config.reward.phi)
+        # Conflicts where an evaluation writes SUMO's outputs; training's runs go without the SSM device's cost.
+        self._safety = config.safety if config.sim.outputs and config.safety.ssm else None
         self.last_outputs: FlowOutputs | None = None  # SUMO's outputs of the last finished run
         self.last_record: dict[str, np.ndarray] | None = None  # ... and its record
         self.sumo_outputs: dict[int, Any] = {}  # the episode envs' per-episode outputs: none here
@@ -71,7 +73,7 @@ class DemandEnv(SumoEnv):
         self.out_dir = root / f"run_{seed}"
         d = self.demand
         self.session.load(self.route_file, seed, flow_output_args(self.out_dir, self.sites, d.warmup, d.horizon,
-                                                                   self.cfg.demand.interval))
+                                                                   self.cfg.demand.interval, self._safety))
         self.recorder = FlowRecorder(self.zone, self.chainage, (d.warmup, d.horizon))
         self.steps, self.slot, self.gone = 0, {}, set()
         self._target: dict[str, float] = {}  # [m/s] each AV's target speed
@@ -226,7 +228,8 @@ class DemandEnv(SumoEnv):
         """The horizon: SUMO closes its outputs; parse them, keep the record, and summarise the run."""
         self.session.end_simulation()
         d = self.demand
-        self.last_outputs = read_flow_outputs(self.out_dir, d.warmup, d.horizon, end=self._snap.time)
+        self.last_outputs = read_flow_outputs(self.out_dir, d.warmup, d.horizon, end=self._snap.time,
+                                              ssm=self._safety is not None)
         self.last_record = {**self.recorder.arrays(), "exit_lanes": np.asarray(len(self.sites.exit_lanes)),
                             "area_ids": np.asarray([a.did for a in self.sites.influence], dtype=str),
                             "area_lengths": np.asarray([a.length for a in self.sites.influence])}
@@ -237,7 +240,7 @@ class DemandEnv(SumoEnv):
         flow = window_metrics(self.last_outputs, self.last_record, d, self.sites,
                               lanes_after=len(self.net.through_lanes(after)),
                               vehicle_gap=self.cfg.merger.length + self.cfg.merger.min_gap,
-                              interval=self.cfg.demand.interval)
+                              interval=self.cfg.demand.interval, safety=self._safety)
         self.last_summary = {"seed": self.episode_seed, "length": self.steps, "avs_released": len(self.gone),
                              "collisions": len(self.recorder.collisions), "out_dir": str(self.out_dir), **flow}
         for info in infos.values():

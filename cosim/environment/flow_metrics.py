@@ -19,7 +19,10 @@ in demand mode; a `DemandEnv`'s run summary carries it), every figure over the w
   length) and its HCM level of service: A to E by density (10, 20, 28, 35 pc/mi/ln), F where the demand exceeds
   the capacity (`los`);
 - per merging vehicle (a ramp vehicle that reached the merge edge in the window): the share that reached a
-  through lane by the horizon and the share involved in a collision; and the collisions in the window.
+  through lane by the horizon and the share involved in a collision; and the collisions in the window;
+- with a `safety` section and the SSM device's conflicts in `out` (evaluation: `sim.outputs`), the conflicts whose
+  worst value passed its threshold in the window (`cosim.sumo.outputs.conflict_counts`): in all, with an AV, with
+  a ramp vehicle.
 """
 
 from __future__ import annotations
@@ -31,8 +34,10 @@ from typing import Any
 
 import numpy as np
 
+from cosim.config import SafetyConfig
 from cosim.sumo.demand import Demand
 from cosim.sumo.flow_outputs import FlowOutputs, FlowSites
+from cosim.sumo.outputs import conflict_counts
 from cosim.sumo.scenario import kind_of
 from cosim.sumo.setting import Setting
 from cosim.sumo.snapshot import KIND_MERGER
@@ -71,9 +76,11 @@ def _intervals(out: FlowOutputs, dids: list[str], key: str) -> np.ndarray:
 
 
 def window_metrics(out: FlowOutputs, rec: Mapping[str, np.ndarray], demand: Demand, sites: FlowSites,
-                   lanes_after: int, vehicle_gap: float, interval: float) -> dict[str, Any]:
+                   lanes_after: int, vehicle_gap: float, interval: float,
+                   safety: SafetyConfig | None = None) -> dict[str, Any]:
     """`rec`: the run's `FlowRecorder.arrays()`; `lanes_after`: lanes of the highway past the merge (capacity);
-    `vehicle_gap`: a waiting ramp vehicle's length plus minimum gap [m]; `interval`: the detectors' [s]."""
+    `vehicle_gap`: a waiting ramp vehicle's length plus minimum gap [m]; `interval`: the detectors' [s]; `safety`:
+    the conflicts' thresholds."""
     w0, w1 = demand.warmup, demand.horizon
     hours = demand.window / 3600.0
     from_ramp = sum(kind_of(v) == KIND_MERGER for _, v in out.passages)
@@ -125,6 +132,10 @@ def window_metrics(out: FlowOutputs, rec: Mapping[str, np.ndarray], demand: Dema
                 "collisions_window": int(np.count_nonzero((rec["collision_times"] >= w0)
                                                           & (rec["collision_times"] < w1))),
                 "avs_present_max": int(rec["avs_present"].max()) if len(rec["avs_present"]) else 0})
+    if safety is not None and out.conflicts is not None:
+        counts = conflict_counts(out.conflicts, safety, until=w1, since=w0)
+        row.update({"conflicts_window": counts["conflicts"], "conflicts_av_window": counts["conflicts_av"],
+                    "conflicts_merger_window": counts["conflicts_merger"]})
     return row
 
 

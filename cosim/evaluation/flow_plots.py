@@ -10,7 +10,9 @@ Contract: `plot_demand(eval_dir, plots_dir, label, seeds)` draws, from a demand 
 - `flow_density.png`: per detector interval of every seed, the flow leaving the merge area [veh/h/ln] against the
   density in the merge influence area [veh/km/ln], with the HCM level-of-service bounds;
 and returns their paths. `flow_bars(summaries, path, caption)` draws the flow metrics of several policies side by
-side (`cosim compare`, `cosim sweep`). Every figure is titled and captioned with the policy, the demand and the net.
+side (`cosim compare`, `cosim sweep`); `penetration_curves(cells, path)` draws delay and throughput against the AV
+penetration per demand level, a line and band per player (`scripts/demand_headline.py`). Every figure is titled
+and captioned with the policy, the demand and the net.
 """
 
 from __future__ import annotations
@@ -147,3 +149,32 @@ def flow_bars(summaries: Mapping[str, Mapping[str, Mapping[str, float]]], path: 
     present = [m for m in FLOW_BARS if any(m in s for s in summaries.values())]
     return bars(summaries, path, metrics=present, caption=caption,
                 title="Traffic flow over the measurement window: mean over seeds with its 95% interval")
+
+
+def penetration_curves(cells: Mapping[str, Mapping[float, Mapping[str, Mapping[str, Mapping[str, float]]]]],
+                       path: Path, metrics: Sequence[str] = ("delay per vehicle [s]", "throughput, total [veh/h]"),
+                       caption: str = "") -> Path:
+    """One column per demand level, one row per metric: each player's mean against the AV penetration [%], its
+    95% interval over seeds as a band. `cells[level][penetration][player]` is a summary's metrics."""
+    levels = list(cells)
+    fig = Figure(figsize=(4.2 * len(levels) + 2.0, 3.0 * len(metrics)), layout="constrained")  # + the legend
+    axes = fig.subplots(len(metrics), len(levels), squeeze=False)
+    players = list(dict.fromkeys(p for level in cells.values() for cell in level.values() for p in cell))
+    for col, level in enumerate(levels):
+        shares = sorted(cells[level])
+        for row, metric in enumerate(metrics):
+            ax = axes[row][col]
+            for i, player in enumerate(players):
+                stats = [cells[level][s].get(player, {}).get(metric, {}) for s in shares]
+                mean, low, high = (np.array([st.get(k, np.nan) for st in stats], dtype=float)
+                                   for k in ("mean", "ci_low", "ci_high"))
+                x = 100 * np.asarray(shares)
+                ax.plot(x, mean, marker="o", color=f"C{i}", label=player)
+                ax.fill_between(x, low, high, color=f"C{i}", alpha=0.2, linewidth=0)
+            ax.set_xlabel("AV penetration [% of mainline vehicles]")
+            ax.set_ylabel(metric)
+            ax.set_title(f"{level}: {metric.split(' [')[0]}", fontsize=10)
+    axes[0][-1].legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8)
+    fig.suptitle("Flow against AV penetration (band: 95% interval over seeds)")
+    add_caption(fig, caption)
+    return save(fig, path)

@@ -72,6 +72,8 @@ FLOW_METRICS: dict[str, tuple[str, float]] = {
     "merge success, per merging vehicle [%]": ("merge_rate_pct", 1.0),
     "crash, per merging vehicle [%]": ("crash_rate_pct", 1.0),
     "collisions [per window]": ("collisions_window", 1.0),
+    "conflicts [per window]": ("conflicts_window", 1.0),
+    "conflicts with a ramp vehicle [per window]": ("conflicts_merger_window", 1.0),
 }
 # Labels of SUMMARY_METRICS whose column is 0/1 per episode: Wilson score intervals, not t-intervals.
 RATE_METRICS: frozenset[str] = frozenset(label for label, (_, scale) in SUMMARY_METRICS.items() if scale == 100.0)

@@ -7,11 +7,13 @@ Contract:
   acceleration lane (the ramp queue: SUMO's jam length along the lane chain); lane-area detectors over the HCM
   merge influence area (the acceleration lanes and the two right through lanes, from the acceleration lane's
   start `influence_area` metres downstream, along the lanes' connections); and an edgeData over the window.
-- `flow_output_args(folder, sites, warmup, horizon, interval)` writes `folder/flow.add.xml` and returns SUMO's
-  options for it and for tripinfo (unfinished and undeparted trips included).
-- `read_flow_outputs(folder, warmup, horizon, end)` -> `FlowOutputs` over the window [warmup, horizon] [s]: the loops'
-  passages, the detectors' intervals that lie in the window, the edgeData totals, every trip. SUMO completes the
-  files at close or reload; a missing or truncated one raises `SimulationError` naming it.
+- `flow_output_args(folder, sites, warmup, horizon, interval, safety)` writes `folder/flow.add.xml` and returns
+  SUMO's options for it and for tripinfo (unfinished and undeparted trips included); with a `safety` section whose
+  `ssm` is on, SUMO's SSM device in every vehicle too (`cosim.sumo.outputs.ssm_args`).
+- `read_flow_outputs(folder, warmup, horizon, end, ssm)` -> `FlowOutputs` over the window [warmup, horizon] [s]: the
+  loops' passages, the detectors' intervals that lie in the window, the edgeData totals, every trip, and with `ssm`
+  every conflict of the run (`read_ssm`). SUMO completes the files at close or reload; a missing or truncated one
+  raises `SimulationError` naming it.
 """
 
 from __future__ import annotations
@@ -20,9 +22,11 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cosim.config import SafetyConfig
 from cosim.errors import SimulationError
 from cosim.files import atomic_write_text
 from cosim.sumo.net import Net
+from cosim.sumo.outputs import SSM_FILE, Conflict, read_ssm, ssm_args
 
 ADDITIONAL = "flow.add.xml"
 PASSAGES, AREAS, EDGES, TRIPS = "passages.xml", "areas.xml", "edges.xml", "tripinfo.xml"
@@ -98,7 +102,8 @@ def _split(lane_id: str) -> tuple[str, int]:
     return edge, int(index)
 
 
-def flow_output_args(folder: Path, sites: FlowSites, warmup: float, horizon: float, interval: float) -> list[str]:
+def flow_output_args(folder: Path, sites: FlowSites, warmup: float, horizon: float, interval: float,
+                     safety: SafetyConfig | None = None) -> list[str]:
     folder.mkdir(parents=True, exist_ok=True)
     lines = [f'  <instantInductionLoop id="exit_{k}" lane="{lane}" pos="{EXIT_POS}" file="{PASSAGES}"/>'
              for k, lane in enumerate(sites.exit_lanes)]
@@ -109,7 +114,8 @@ def flow_output_args(folder: Path, sites: FlowSites, warmup: float, horizon: flo
     additional = folder / ADDITIONAL
     atomic_write_text(additional, "<additional>\n" + "\n".join(lines) + "\n</additional>\n")
     return ["--additional-files", str(additional), "--tripinfo-output", str(folder / TRIPS),
-            "--tripinfo-output.write-unfinished", "true", "--tripinfo-output.write-undeparted", "true"]
+            "--tripinfo-output.write-unfinished", "true", "--tripinfo-output.write-undeparted", "true",
+            *(ssm_args(folder, safety) if safety is not None and safety.ssm else ())]
 
 
 @dataclass(frozen=True)
@@ -128,6 +134,7 @@ class FlowOutputs:
     intervals: dict[str, list[dict[str, float]]] = field(default_factory=dict)  # detector -> its window intervals
     time_spent: float = 0.0  # [s] vehicle-seconds in the network over the window (edgeData sampledSeconds)
     trips: list[Trip] = field(default_factory=list)
+    conflicts: list[Conflict] | None = None  # the run's, where the SSM device rode (read_ssm)
 
 
 def _root(path: Path) -> ET.Element:
@@ -140,7 +147,8 @@ def _root(path: Path) -> ET.Element:
         raise SimulationError(f"SUMO output {path}: incomplete or not XML ({exc})") from None
 
 
-def read_flow_outputs(folder: Path, warmup: float, horizon: float, end: float | None = None) -> FlowOutputs:
+def read_flow_outputs(folder: Path, warmup: float, horizon: float, end: float | None = None,
+                      ssm: bool = False) -> FlowOutputs:
     """`end`: the simulation's last time [s] (a step past `horizon` where the run began a step in), from which
     an undeparted vehicle's waiting is counted back to when it wanted to enter."""
     out = FlowOutputs()
@@ -162,4 +170,6 @@ def read_flow_outputs(folder: Path, warmup: float, horizon: float, end: float | 
         intended = (depart if departed else (horizon if end is None else end)) - delay
         out.trips.append(Trip(t.get("id", ""), intended, departed, delay, float(t.get("timeLoss", "0")),
                               float(t.get("routeLength", "0")) if departed else 0.0))
+    if ssm:
+        out.conflicts = read_ssm(folder / SSM_FILE)
     return out

@@ -203,16 +203,18 @@ def _worse(a: Conflict, b: Conflict) -> Conflict:
     return Conflict(a.ego, a.foe, min(a.begin, b.begin), max(a.end, b.end), **values)
 
 
-def conflict_counts(conflicts: list[Conflict], safety: SafetyConfig, until: float) -> dict[str, float]:
-    """The episode's conflicts whose worst value passed its threshold at `until` [s] or before: in all, by measure,
-    with an AV, with the merging vehicle; and the worst TTC, DRAC and PET among them (NaN: none)."""
+def conflict_counts(conflicts: list[Conflict], safety: SafetyConfig, until: float,
+                    since: float = -math.inf) -> dict[str, float]:
+    """The conflicts whose worst value passed its threshold between `since` and `until` [s]: in all, by measure,
+    with an AV, with the merging vehicle (any ramp vehicle under demand); and the worst TTC, DRAC and PET among them
+    (NaN: none)."""
     limits = {"ttc": safety.ttc, "drac": safety.drac, "pet": safety.pet}
     counts = dict.fromkeys(("conflicts", *(f"conflicts_{m}" for m in limits), "conflicts_av", "conflicts_merger"),
                            0.0)
     worst = {column: math.nan for _, _, column in _MEASURES.values()}
     for c in conflicts:
         hits = [(name, worse, column) for name, worse, column in _MEASURES.values()
-                if getattr(c, f"{name}_time") <= until  # NaN (no value) compares False
+                if since <= getattr(c, f"{name}_time") <= until  # NaN (no value) compares False
                 and (getattr(c, name) < limits[name] if worse is min else getattr(c, name) > limits[name])]
         if not hits:
             continue

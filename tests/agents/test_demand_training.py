@@ -2,6 +2,8 @@
 
 import csv
 import functools
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -104,6 +106,18 @@ def test_cosim_train_under_demand_trains_runs_validates_resumes_and_evaluates(tm
                  *(f"--set={k}={v}" for k, v in SHORT.items() if k.startswith("demand")),
                  "--set", "demand.seeds=1", "--out", str(out)]) == 0
     assert (out / "summary.json").is_file()
+    # The headline: the run against all-human traffic and `scripted` at a penetration and a demand level.
+    headline = tmp_path / "headline"
+    done = subprocess.run([sys.executable, "scripts/demand_headline.py", str(run), "--levels", "near capacity",
+                           "--penetrations", "0.3", "--seeds", "2", "--out", str(headline),
+                           *(f"--set={k}={v}" for k, v in SHORT.items() if k.startswith("demand"))],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    text = (headline / "headline.md").read_text()
+    assert "## near capacity, 30% AVs" in text and "run: throughput" in text and "against scripted" in text
+    for player in ("all-human", "scripted", "run"):
+        assert len(list((headline / "near_capacity" / "30pct" / player).glob("sumo/run_*"))) == 2
+    assert (headline / "headline.png").is_file()
 
 
 @pytest.mark.parametrize("key,value,says", [

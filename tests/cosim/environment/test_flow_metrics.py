@@ -4,17 +4,20 @@ the delay of a vehicle that never entered; and the level of service and the capa
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from pathlib import Path
 
 import pytest
 
-from cosim.config import load_config
+from cosim.config import SafetyConfig, load_config
 from cosim.environment.episode import MergeZone
 from cosim.environment.flow_metrics import level_of_service, window_metrics
 from cosim.environment.flow_record import FlowRecorder
 from cosim.sumo.demand import freeway_capacity, ramp_capacity, resolve_demand
 from cosim.sumo.flow_outputs import flow_output_args, flow_sites, read_flow_outputs
 from cosim.sumo.net import load_net
+from cosim.sumo.outputs import SSM_FILE, Conflict
 from cosim.sumo.resolve import resolve
 from cosim.sumo.scenario import kind_of, routes_xml, vtype_xml
 from cosim.sumo.session import SumoSession
@@ -22,9 +25,11 @@ from cosim.sumo.session import SumoSession
 WARMUP, HORIZON = 60.0, 180.0  # [s] a 2-minute window after a 1-minute warm-up
 
 
-def run_by_hand(tmp_path: Path, vehicles: list[tuple[float, str]], ramp_lc: str = "") -> dict:
+def run_by_hand(tmp_path: Path, vehicles: list[tuple[float, str]], ramp_lc: str = "",
+                safety: SafetyConfig | None = None) -> dict:
     """Play the hand-written `vehicles` ((depart, XML) pairs) on the dilemma net with the demand run's detectors
-    and record; returns the window's metrics and SUMO's parsed outputs."""
+    (and with `safety` SUMO's SSM device) and record; returns the window's metrics, SUMO's parsed outputs and what
+    `window_metrics` needs besides them."""
     cfg = resolve(load_config("configs/demand.yaml", {"demand.warmup": WARMUP, "demand.window": HORIZON - WARMUP}),
                   net := load_net(load_config("configs/default.yaml").net.file)).config
     types = vtype_xml("car", cfg.hv, 1.0, 0.0, 1.0)
@@ -38,17 +43,17 @@ def run_by_hand(tmp_path: Path, vehicles: list[tuple[float, str]], ramp_lc: str 
     session = SumoSession(Path(cfg.net.file), 0.1, net.road.index_of, kind_of)
     record = FlowRecorder(MergeZone.from_net(net), net.chainage, (WARMUP, HORIZON))
     try:
-        session.load(routes, 1, flow_output_args(tmp_path / "out", sites, WARMUP, HORIZON, 30.0))
+        session.load(routes, 1, flow_output_args(tmp_path / "out", sites, WARMUP, HORIZON, 30.0, safety))
         while session.snapshot().time < HORIZON - 0.05:
             session.advance(10, {}, 3.0, 5.0, 33.0)
             record.observe(session.snapshot(), session.pending())
         end = session.snapshot().time  # a step past the horizon: SUMO's first step came with the load
     finally:
         session.close()
-    out = read_flow_outputs(tmp_path / "out", WARMUP, HORIZON, end)
-    row = window_metrics(out, record.arrays(), resolve_demand(cfg, net), sites, lanes_after=2, vehicle_gap=7.5,
-                         interval=30.0)
-    return {"row": row, "out": out, "end": end}
+    out = read_flow_outputs(tmp_path / "out", WARMUP, HORIZON, end, ssm=safety is not None)
+    rest = {"rec": record.arrays(), "demand": resolve_demand(cfg, net), "sites": sites, "lanes_after": 2,
+            "vehicle_gap": 7.5, "interval": 30.0, "safety": safety}
+    return {"row": window_metrics(out, **rest), "out": out, "end": end, "rest": rest}
 
 
 def _car(vid: str, t: float, route: str = "hw_0", lane: int = 0, vtype: str = "car", extra: str = "") -> tuple:
@@ -72,6 +77,24 @@ def test_the_detectors_count_the_window_only_and_by_origin(tmp_path: Path) -> No
     assert row["ramp_queue_max_veh"] == 0 and row["collisions_window"] == 0
     # Each drove the whole of its route (the trip is unfinished only if still on it at the end).
     assert row["distance_mean_m"] > 1000
+
+
+def test_the_window_counts_the_ssm_devices_conflicts_in_it_by_party(tmp_path: Path) -> None:
+    cars = [_car(f"hv_m{k}", 62.0 + 2 * k, lane=1) for k in range(3)] + [_car("merger_0", 64.0, route="ramp_0")]
+    got = run_by_hand(tmp_path, cars, safety=SafetyConfig())
+    assert (tmp_path / "out" / SSM_FILE).is_file() and got["out"].conflicts is not None  # SUMO's device rode
+    assert {"conflicts_window", "conflicts_av_window", "conflicts_merger_window"} <= set(got["row"])
+
+    def conflict(ego: str, foe: str, t: float) -> Conflict:  # a TTC of 0.5 s at `t`
+        return Conflict(ego, foe, t - 1, t + 1, 0.5, t, math.nan, math.nan, math.nan, math.nan)
+
+    # During the warm-up, in the window (an AV with a ramp vehicle, two HVs), after the horizon.
+    hand = [conflict("av_1", "hv_0", 30.0), conflict("av_2", "merger_4", 100.0), conflict("hv_1", "hv_2", 150.0),
+            conflict("merger_5", "hv_3", 200.0)]
+    row = window_metrics(dataclasses.replace(got["out"], conflicts=hand), **got["rest"])
+    assert (row["conflicts_window"], row["conflicts_av_window"], row["conflicts_merger_window"]) == (2, 1, 1)
+    # Without the device (training's runs), no conflict columns rather than zeros.
+    assert "conflicts_window" not in window_metrics(got["out"], **{**got["rest"], "safety": None})
 
 
 def test_a_ramp_queue_of_known_length_and_the_delay_of_a_vehicle_that_never_entered(tmp_path: Path) -> None:

@@ -46,3 +46,27 @@ def test_without_a_collision_the_legend_names_none(monkeypatch: pytest.MonkeyPat
         assert [t.get_text() for t in ax.get_legend().get_texts()] == ["acceleration lane starts (501 m)",
                                                                        "acceleration lane ends (620 m)"]
         assert len(ax.collections) == 1  # the vehicles' points alone
+
+
+def test_the_penetration_curves_draw_each_players_means_and_band_per_level(monkeypatch: pytest.MonkeyPatch,
+                                                                            tmp_path: Path) -> None:
+    def stat(mean: float) -> dict[str, float]:
+        return {"mean": mean, "ci_low": mean - 1.0, "ci_high": mean + 1.0}
+
+    cells = {level: {share: {player: {"delay per vehicle [s]": stat(10 * share + k),
+                                      "throughput, total [veh/h]": stat(3000 + k)}
+                             for k, player in enumerate(("all-human", "phi0"))}
+                     for share in (0.6, 0.1)}  # out of order: drawn by penetration
+             for level in ("near capacity", "over capacity")}
+    figures: list[Figure] = []
+    monkeypatch.setattr(flow_plots, "save", lambda fig, path: figures.append(fig) or path)
+    flow_plots.penetration_curves(cells, tmp_path / "p.png", caption=CAPTION)
+    (fig,) = figures
+    axes = fig.axes
+    assert [ax.get_title() for ax in axes] == ["near capacity: delay per vehicle", "over capacity: delay per vehicle",
+                                               "near capacity: throughput, total", "over capacity: throughput, total"]
+    line = axes[0].get_lines()[1]  # phi0's delay, near capacity
+    assert line.get_label() == "phi0"
+    np.testing.assert_allclose(line.get_xdata(), [10.0, 60.0])
+    np.testing.assert_allclose(line.get_ydata(), [2.0, 7.0])
+    assert len(axes[0].collections) == 2  # a band per player

@@ -96,6 +96,11 @@ def test_ssm_conflicts_are_counted_once_by_measure_and_by_party(tmp_path: Path) 
     assert none["conflicts"] == 0 and math.isnan(none["min_ttc"]) and math.isnan(none["max_drac"])
     strict = conflict_counts(conflicts, SafetyConfig(ttc=0.9, drac=4.0, pet=1.0), until=20.0)
     assert (strict["conflicts"], strict["conflicts_ttc"], strict["conflicts_drac"]) == (2, 1, 1)
+    # A demand run's window from 7.85 s: av_0/hv_2's DRAC (8 s) and the merging vehicle's PET and TTC are in,
+    # av_0/hv_2's TTC (7.9 s) too; hv_7/hv_8's DRAC (3 s) is before it.
+    window = conflict_counts(conflicts, safety, until=20.0, since=7.85)
+    assert [window[k] for k in ("conflicts", "conflicts_ttc", "conflicts_drac", "conflicts_pet")] == [2, 2, 1, 1]
+    assert window["max_drac"] == 3.6
 
 
 def test_the_ssm_device_is_asked_for_only_where_the_safety_section_wants_it(tmp_path: Path) -> None:
