@@ -21,7 +21,10 @@ from the value of the observation it goes on from; a run that reaches its horizo
 episode and the worker starts its next run at once (seed `seed_of(worker)`). A worker that fails loses its run:
 its samples of the segment are dropped (`valid` cleared), it is counted lost, and its replacement starts a new run.
 `Segments.drop()` forgets the runs in progress (after validation played other episodes on the workers, at a resume):
-the next segment starts new ones.
+the next segment starts new ones. With `train.segments` episodes are collected the same way (`Segments(pool,
+demand=False)`): a worker whose episode ends starts its next one in the same segment, so that no worker waits for
+the longest episode of an update, and every update holds the same number of decisions; an episode's returns are
+then per agent, as `collect`'s, where a demand run's are per AV released.
 """
 
 from __future__ import annotations
@@ -154,12 +157,13 @@ def _act(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, live: list[tu
 
 
 class Segments:
-    """The continuing runs of training under demand, one per worker, and their segments (module doc)."""
+    """The continuing runs (under demand) or episodes of each worker, and their segments (module doc)."""
 
-    def __init__(self, pool: WorkerPool) -> None:
-        self.pool = pool
+    def __init__(self, pool: WorkerPool, demand: bool = True) -> None:
+        self.pool, self.demand = pool, demand
         self.runs: dict[int, tuple[int, StepResult]] = {}  # worker -> (its run's seed, its answer to act on)
-        self.sums: dict[int, tuple[float, dict[str, float]]] = {}  # worker -> its run's rewards and terms so far
+        # worker -> its run's rewards and reward terms so far, per agent (per slot under demand)
+        self.sums: dict[int, tuple[np.ndarray, dict[str, np.ndarray]]] = {}
 
     def drop(self) -> None:
         self.runs.clear()
@@ -167,7 +171,7 @@ class Segments:
 
     def collect(self, policy: MultiAgentPolicy, batch: Batch, update: int, seed_of: Callable[[int], int]) -> Collected:
         out = Collected()
-        pool, steps, n_workers = self.pool, batch.valid.shape[0], batch.valid.shape[1]
+        pool, (steps, n_workers, n_agents) = self.pool, batch.valid.shape
         batch.clear()
         half = (n_workers + 1) // 2
         groups = [list(range(half)), list(range(half, n_workers))]
@@ -180,7 +184,7 @@ class Segments:
         def start(ws: list[int]) -> None:
             for w in ws:
                 seeds[w] = seed_of(w)
-                self.sums[w] = (0.0, {})
+                self.sums[w] = (np.zeros(n_agents), defaultdict(lambda: np.zeros(n_agents)))
             resetting.update(ws)
             pool.send_reset(ws, [seeds[w] for w in ws])
 
@@ -209,15 +213,16 @@ class Segments:
                         batch.truncated[t, w] = torch.from_numpy(res.truncated)
                         at_horizon += [(t, w, int(i)) for i in np.flatnonzero(res.truncated)]
                         reward, terms = self.sums[w]
+                        reward += res.reward
                         for name, values in res.reward_terms.items():
-                            terms[name] = terms.get(name, 0.0) + float(values.sum())
-                        self.sums[w] = (reward + float(res.reward.sum()), terms)
-                    if res.episode is not None:  # the run reached its horizon: the next one starts at once
+                            terms[name] += values
+                    if res.episode is not None:  # the run (or episode) is over: the next one starts at once
                         reward, terms = self.sums.pop(w)
-                        out.episodes.append(Episode(w, seeds[w], res.episode,
-                                                    np.array([per_av_released(reward, res.episode)]),
-                                                    {k: np.array([per_av_released(v, res.episode)])
-                                                     for k, v in terms.items()}))
+                        if self.demand:  # slots are held by many AVs in turn: the run's sum per AV released
+                            reward, terms = (np.array([per_av_released(float(reward.sum()), res.episode)]),
+                                             {k: np.array([per_av_released(float(v.sum()), res.episode)])
+                                              for k, v in terms.items()})
+                        out.episodes.append(Episode(w, seeds[w], res.episode, reward, dict(terms)))
                         restart.append(w)
                     elif step[w] >= steps:  # the segment is complete; the run goes on in the next one
                         if stepped:

@@ -18,11 +18,13 @@ lacks rows the checkpoint counts (deleted or cut: the run goes on, its log witho
 
 One update: every worker plays one whole episode (`agents.collect`), then the network(s) learn from every
 sample the scheme allows (`agents.multiagent`). Samples of absent agents and episodes lost to a worker
-failure are masked out, never padded into the loss. Under demand (`demand.enabled`) an update is a segment of
-`train.segment_steps` decisions of every worker's continuing run (`agents.collect.Segments`), agents indexed by
-observation slot, one shared network; an episode is one run (warm-up and window), and its row in `episodes.csv`
-holds the run's reward per AV released. The runs in progress at a stop are not in the checkpoint (SUMO's state is
-not saved): a resumed run starts new runs, so it continues with other runs than an uninterrupted one would.
+failure are masked out, never padded into the loss. With `train.segments` an update is a segment of
+`train.segment_steps` decisions of every worker's continuing episodes instead (`agents.collect.Segments`: a worker
+starts its next episode as one ends; a resumed run starts new ones). Under demand (`demand.enabled`) it always is,
+of every worker's continuing run, agents indexed by observation slot, one shared network; an episode is one run
+(warm-up and window), and its row in `episodes.csv` holds the run's reward per AV released. The runs in progress
+at a stop are not in the checkpoint (SUMO's state is not saved): a resumed run starts new runs, so it continues
+with other runs than an uninterrupted one would.
 """
 
 from __future__ import annotations
@@ -118,7 +120,7 @@ RESUMABLE = frozenset({"train.episodes", "train.budget_min", "train.checkpoint_e
                        "train.device", *(f"safety.{key}" for key in SafetyConfig.model_fields)})
 # What a run from before a key existed did, for the resume's comparison: it trained without action masks, and
 # without a safety layer.
-UNRECORDED = {"train.action_mask": False, "av.shield": "none", "train.segment_steps": 64}
+UNRECORDED = {"train.action_mask": False, "av.shield": "none", "train.segment_steps": 64, "train.segments": False}
 
 
 def run_config(cfg: Config, tc: TrainConfig) -> dict[str, Any]:
@@ -181,13 +183,15 @@ def _check_memory(cfg: Config, tc: TrainConfig, backend: Backend, setting: Setti
         assert setting is not None and setting.demand is not None
         steps, agents, who = tc.segment_steps, setting.demand.slots, "AV slots"
     else:
-        steps, agents, who = max(1, round(cfg.sim.horizon / cfg.sim.decision_period)), cfg.scenario.n_avs, "AVs"
+        steps = tc.segment_steps if tc.segments else max(1, round(cfg.sim.horizon / cfg.sim.decision_period))
+        agents, who = cfg.scenario.n_avs, "AVs"
     batch = steps * tc.workers * agents * values * np.dtype(obs.dtype).itemsize
     parts = [(f"one update's batch ({steps:,} decision steps x {tc.workers} workers x {agents} {who} x "
               f"{values:,} observation values)", batch)]
     if backend.name == "local":
         parts.append((f"{tc.workers} worker processes", tc.workers * WORKER_MIB << 20))
-    check_memory(parts, "lower train.segment_steps (under demand) or sim.horizon, train.workers (--workers), "
+    check_memory(parts, "lower train.segment_steps (under demand or with segments) or sim.horizon, train.workers "
+                        "(--workers), "
                         "scenario.n_avs or the observation's size")
 
 
@@ -409,8 +413,8 @@ class _Run:
                          self.counters["episodes"])
             # Storage for one update, allocated once: T steps x W workers x N agents (under demand: AV slots).
             self.demand = cfg.demand.enabled
-            self.segments = Segments(self.pool) if self.demand else None
-            self.batch = Batch.allocate(tc.segment_steps if self.demand else spec.max_steps, tc.workers,
+            self.segments = Segments(self.pool, self.demand) if self.demand or tc.segments else None
+            self.batch = Batch.allocate(tc.segment_steps if self.segments else spec.max_steps, tc.workers,
                                         len(spec.agents), spec.obs_shape, getattr(torch, spec.obs_dtype),
                                         spec.n_actions)
             # Every check passed: from here on the run folder changes.
@@ -484,9 +488,14 @@ class _Run:
         torch.set_num_threads(self.threads["act"])
         t0 = time.perf_counter()
         update = self.counters["updates"]
-        if self.segments is not None:  # a run that starts in this update is seeded as an episode would be
-            got = self.segments.collect(self.policy, self.batch, update,
-                                        lambda w: episode_seed(self.tc.seed, update, w))
+        if self.segments is not None:
+            starts = [0] * self.tc.workers
+
+            def seed_of(w: int) -> int:  # the k-th episode a worker starts in this update: (update, w + k W)
+                starts[w] += 1
+                return episode_seed(self.tc.seed, update, w + (starts[w] - 1) * self.tc.workers)
+
+            got = self.segments.collect(self.policy, self.batch, update, seed_of)
         else:
             got = collect(self.pool, self.policy, self.batch, self.next_seeds(), update)
         self.timing["rollout"] += time.perf_counter() - t0

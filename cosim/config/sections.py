@@ -520,7 +520,8 @@ class TrainConfig(_Section):
     """Multi-agent actor-critic hyper-parameters. A "step" is one decision period of one env.
 
     One update: every worker plays one whole episode (seeded by the run's seed, the update and the worker), or
-    under demand `segment_steps` decisions of its continuing run (an episode is then one run); the network(s)
+    with `segments` (always under demand) `segment_steps` decisions of its continuing episodes (under demand an
+    episode is one run); the network(s)
     then learn from the batch: every live AV's samples with `shared_policy` (the default), the learner AV's
     samples with per-AV networks (the paper's semi-sequential scheme). `a2c` takes one gradient step per
     batch (the paper's algorithm), `ppo` several epochs of clipped updates over it.
@@ -556,9 +557,13 @@ class TrainConfig(_Section):
     clip_range: Number = Field(0.2, ge=0, le=1, description="PPO's ratio clip [-]")
     disseminate_every: Int = Field(
         10, gt=0, description="K: updates a learner AV trains before its weights are disseminated (per AV)")
+    segments: StrictBool = Field(
+        False, description="episodes: each update a segment of segment_steps decisions of every worker's continuing "
+        "episodes (the next starts as one ends, none waits for the longest) instead of one whole episode per "
+        "worker; under demand always")
     segment_steps: Int = Field(
-        64, gt=0, description="under demand: decisions of each worker's continuing run per update (CleanRL's "
-        "num_steps); an AV that goes on past them is bootstrapped")
+        64, gt=0, description="under demand (or with segments): decisions of each worker's continuing run per "
+        "update (CleanRL's num_steps); an AV that goes on past them is bootstrapped")
     checkpoint_every: Int = Field(
         50, gt=0, description="updates between two checkpoints (one is also written at the end)")
     eval_every: Int = Field(

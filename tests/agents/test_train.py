@@ -66,6 +66,27 @@ def test_training_improves_the_return_over_the_untrained_policy(tmp_path: Path, 
     assert any((tmp_path / "run" / "tb").iterdir())
 
 
+def test_segments_of_continuing_episodes_learn_and_seed_every_episode_apart(tmp_path: Path) -> None:
+    # Segments of 12 decisions of episodes of 8: most episodes span two updates, bootstrapped at the cut.
+    cfg = cfg_with(algo="ppo", segments=True, segment_steps=12)
+    torch.manual_seed(SMALL["seed"])
+    untrained = MultiAgentPolicy(2, (2, 4, 8, 16), 5, train_config(cfg))
+    before = mean_return({"av_0": untrained.nets[0], "av_1": untrained.nets[-1]})
+    result = train(cfg, tmp_path / "run", workers=2, episodes=300, env_factory=make_fake_env(n_agents=2),
+                   progress=False)
+    after = mean_return(load_policy(result.checkpoint)[0])
+    assert after > before + 4.0, (before, after)
+    rows = episode_rows(tmp_path / "run")
+    assert 300 <= len(rows) == result.episodes < 300 + 2 * 12  # the last update's episodes end where they end
+    assert len({r["seed"] for r in rows}) == len(rows)
+    assert {"return_av_0", "return_av_1"} <= set(rows[0])  # per agent, as whole episodes' rows
+    with (tmp_path / "run" / "updates.csv").open() as f:
+        updates = list(csv.DictReader(f))
+    # 2 workers x 12 decisions x 2 agents a segment, where no agent crashed: no worker waits for another.
+    samples = [int(float(u["samples"])) for u in updates]
+    assert max(b - a for a, b in zip(samples, samples[1:], strict=False)) == 48
+
+
 def test_checkpoint_round_trip_and_resume_continues(tmp_path: Path) -> None:
     run, cfg = tmp_path / "run", cfg_with(shared_policy=True)
     first = train(cfg, run, workers=1, episodes=6, env_factory=make_fake_env(n_agents=2), progress=False)
