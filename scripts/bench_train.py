@@ -18,6 +18,8 @@ forward+backward+step, A2C's one over the whole batch, at the run's own samples 
 training chose), the env's a bare libsumo loop with the VelocityMap (`cosim.bench.measure`) per AV, spread over the
 cores. `share` = samples_per_s / limit: work saved below the textbook passes shows as a share above what it was.
 Results are logged and, with `--json`, written to a file (`samples_per_s`, `limit_samples_per_s`, `share`).
+`--config configs/demand.yaml` measures training under demand (segments of continuing runs); its limit takes the
+env's share from the episode scenario's bare loop on the same net, so its share is a rough one.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ from cosim.files import atomic_write_text, read_csv
 
 log = logging.getLogger("bench_train")
 CORES = TORCH_THREADS  # torch's default: the cores it may use
+LAST = {False: "crashed", True: "collisions"}  # episodes.csv's measure of how far a run learnt, without / with demand
 
 
 def bench_workers(args: argparse.Namespace, algo: str, preset: str, env_s: float) -> list[dict[str, Any]]:
@@ -57,8 +60,9 @@ def bench_workers(args: argparse.Namespace, algo: str, preset: str, env_s: float
         with tempfile.TemporaryDirectory() as tmp:
             res = train(cfg, Path(tmp) / "run", workers=workers, budget_min=args.seconds / 60.0, device=args.device,
                         progress=False, backend=backend)
-            # How far it learnt in that time: the crash rate of its last 100 training episodes (sampled actions).
-            last = [float(r["crashed"]) for r in read_csv(Path(tmp) / "run" / "episodes.csv")[-100:]]
+            # How far it learnt in that time: the crash rate of its last 100 training episodes (sampled actions);
+            # under demand the collisions per run.
+            last = [float(r[LAST[cfg.demand.enabled]]) for r in read_csv(Path(tmp) / "run" / "episodes.csv")[-100:]]
         busy = res.rollout_s + res.update_s
         rate = res.new_samples / res.wall_s
         net = network_seconds(cfg, workers, res.new_samples / max(res.updates, 1), args.device)
@@ -68,12 +72,13 @@ def bench_workers(args: argparse.Namespace, algo: str, preset: str, env_s: float
                      "samples_per_s": round(rate, 1), "limit_samples_per_s": round(limit, 1),
                      "share": round(rate / limit, 3), "network": net, "env_s_per_sample": env_s,
                      "rollout_share": round(res.rollout_s / busy, 3), "update_share": round(res.update_s / busy, 3),
-                     "last_100_crash": round(sum(last) / max(len(last), 1), 2)})
+                     f"last_100_{LAST[cfg.demand.enabled]}": round(sum(last) / max(len(last), 1), 2)})
         log.info("%s, %s preset, %s W=%d: %.0f agent-samples/s, the limit %.0f: share %.2f (rollout %.0f%% / update "
-                 "%.0f%%; network %.3f ms + env %.3f ms / %d cores per agent-sample, %s), %d episodes in %.0f s, crash "
-                 "rate of the last 100 %.2f", algo, preset, backend, workers, rate, limit, rate / limit,
+                 "%.0f%%; network %.3f ms + env %.3f ms / %d cores per agent-sample, %s), %d episodes in %.0f s, %s of "
+                 "the last 100 %.2f", algo, preset, backend, workers, rate, limit, rate / limit,
                  100 * rows[-1]["rollout_share"], 100 * rows[-1]["update_share"], 1e3 * net["per_sample_s"],
-                 1e3 * env_s, CORES, net["precision"], res.episodes, res.wall_s, rows[-1]["last_100_crash"])
+                 1e3 * env_s, CORES, net["precision"], res.episodes, res.wall_s, LAST[cfg.demand.enabled],
+                 sum(last) / max(len(last), 1))
     return rows
 
 
@@ -173,7 +178,8 @@ def main() -> None:
         if Path("/proc/cpuinfo").is_file() else []
     log.info("torch %s, %d cores, device %s, CPU flags %s, bf16 %s", torch.__version__, CORES, args.device,
              flags or "none of avx512_bf16/amx_bf16", use_bf16(args.precision, args.device))
-    bare = measure(cfg, episodes=20, resets=1)["bare"]
+    # Under demand the episode scenario's bare loop on the same net stands in for the env's share of the limit.
+    bare = measure(load_config(cfg, {"demand.enabled": False}), episodes=20, resets=1)["bare"]
     env_s = bare["velocity_map"] / cfg.scenario.n_avs
     log.info("bare libsumo loop with the VelocityMap: %.3f ms per decision of %d AVs", 1e3 * bare["velocity_map"],
              cfg.scenario.n_avs)

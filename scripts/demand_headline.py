@@ -135,8 +135,7 @@ def compare(a: dict[str, float], b: dict[str, float], higher_better: bool) -> st
 def cell_checks(table: dict[str, dict[str, dict[str, float]]], phis: dict[str, float]) -> list[str]:
     """One cell's checks: each trained run's total throughput against all-human traffic's (fails only where its
     interval lies wholly below) and its crash per merging vehicle against `scripted`'s (fails only where wholly
-    above); then, between the lowest and the highest angle, each flow measure of the altruistic run against the
-    egoistic one's."""
+    above); then each flow measure of every run at the highest angle against the first run at the lowest."""
     out = []
     for run in phis:
         t, h = table[run][THROUGHPUT], table[HUMAN][THROUGHPUT]
@@ -148,13 +147,14 @@ def cell_checks(table: dict[str, dict[str, dict[str, float]]], phis: dict[str, f
                    f"against {BAR} {s['mean']:.2f}% [{s['ci_low']:.2f}, {s['ci_high']:.2f}]: "
                    f"{'fails (higher, intervals apart)' if c['ci_low'] > s['ci_high'] else 'holds'}")
     if len(set(phis.values())) >= 2:
-        ego, alt = min(phis, key=phis.get), max(phis, key=phis.get)
-        for metric, higher in CLAIM.items():
-            if metric in table[alt] and metric in table[ego]:
-                a, e = table[alt][metric], table[ego][metric]
-                out.append(f"{metric}: altruistic {a['mean']:.4g} [{a['ci_low']:.4g}, {a['ci_high']:.4g}] vs "
-                           f"egoistic {e['mean']:.4g} [{e['ci_low']:.4g}, {e['ci_high']:.4g}]: altruism "
-                           f"{compare(a, e, higher)}")
+        ego = min(phis, key=phis.get)
+        for alt in [run for run, phi in phis.items() if phi == max(phis.values())]:
+            for metric, higher in CLAIM.items():
+                if metric in table[alt] and metric in table[ego]:
+                    a, e = table[alt][metric], table[ego][metric]
+                    out.append(f"{alt} against {ego}, {metric}: {a['mean']:.4g} [{a['ci_low']:.4g}, "
+                               f"{a['ci_high']:.4g}] vs {e['mean']:.4g} [{e['ci_low']:.4g}, {e['ci_high']:.4g}]: "
+                               f"altruism {compare(a, e, higher)}")
     return out
 
 
