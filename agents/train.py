@@ -191,8 +191,7 @@ def _check_memory(cfg: Config, tc: TrainConfig, backend: Backend, setting: Setti
     if backend.name == "local":
         parts.append((f"{tc.workers} worker processes", tc.workers * WORKER_MIB << 20))
     check_memory(parts, "lower train.segment_steps (under demand or with segments) or sim.horizon, train.workers "
-                        "(--workers), "
-                        "scenario.n_avs or the observation's size")
+                        "(--workers), scenario.n_avs or the observation's size")
 
 
 def _check_demand(setting: Setting, tc: TrainConfig) -> None:

@@ -521,10 +521,9 @@ class TrainConfig(_Section):
 
     One update: every worker plays one whole episode (seeded by the run's seed, the update and the worker), or
     with `segments` (always under demand) `segment_steps` decisions of its continuing episodes (under demand an
-    episode is one run); the network(s)
-    then learn from the batch: every live AV's samples with `shared_policy` (the default), the learner AV's
-    samples with per-AV networks (the paper's semi-sequential scheme). `a2c` takes one gradient step per
-    batch (the paper's algorithm), `ppo` several epochs of clipped updates over it.
+    episode is one run); the network(s) then learn from the batch: every live AV's samples with `shared_policy`
+    (the default), the learner AV's samples with per-AV networks (the paper's semi-sequential scheme). `a2c`
+    takes one gradient step per batch (the paper's algorithm), `ppo` several epochs of clipped updates over it.
     Schedules run from the start value to the `_final` one over the run's progress: the larger of the
     fraction of `episodes` done and, with a `budget_min`, of the budget used.
     """
