@@ -86,7 +86,8 @@ NET_RECORD = "net.json"  # the net a run trains on (path, sha256, summary) and t
 EPISODE_KEYS = ("crashed", "merged", "mean_distance", "merger_distance", "length", "cause_av", "cause_hv_into_av",
                 "cause_merger")
 DEMAND_KEYS = ("length", "avs_released", "collisions", "collisions_window", "merge_rate_pct", "crash_rate_pct",
-               "throughput_total_vph", "delay_mean_s")
+               "throughput_total_vph", "throughput_mainline_vph", "throughput_ramp_vph", "delay_mean_s",
+               "delay_ramp_s")
 
 
 @dataclass(frozen=True)

@@ -88,6 +88,8 @@ def test_cosim_train_under_demand_trains_runs_validates_resumes_and_evaluates(tm
         rows = list(csv.DictReader(f))
     assert len(rows) == 2 and all(float(r["avs_released"]) > 0 and r["collisions"] != "" for r in rows)
     assert all(float(r["throughput_total_vph"]) > 0 for r in rows)  # each run's window flow, as evaluation's
+    assert all(float(r["throughput_total_vph"]) == pytest.approx(float(r["throughput_mainline_vph"])
+                                                                 + float(r["throughput_ramp_vph"])) for r in rows)
     # Validated on greedy runs of the validation seeds: the window's collisions, merges, throughput and delay.
     with (run / "validation.csv").open() as f:
         (val,) = list(csv.DictReader(f))
