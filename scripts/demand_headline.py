@@ -65,6 +65,10 @@ def main() -> None:
     from agents.checkpoint import TrainedPolicy, find_checkpoint  # torch only here
 
     user = config_overrides(args)
+    names = [run.name for run in args.runs]
+    if len(set(names)) < len(names) or {HUMAN, BAR} & set(names):
+        raise CosimError(f"runs are named by their folders, which must differ from each other and from {HUMAN} and "
+                         f"{BAR}: got {', '.join(names)}")
     phis = {}
     for run in args.runs:
         if not (run / "config.yaml").is_file():
