@@ -30,7 +30,7 @@ from cosim.config import DEFAULT_CONFIG, DEMAND_LEVELS, EVAL_SEED_START, load_co
 from cosim.errors import CosimError, run_script
 from cosim.evaluation.flow_plots import penetration_curves
 from cosim.evaluation.runner import Baseline, evaluate
-from cosim.evaluation.stats import FLOW_METRICS, format_table
+from cosim.evaluation.stats import FLOW_METRICS, format_table, interval_text
 from cosim.files import atomic_write_text, write_json
 
 log = logging.getLogger("demand_headline")
@@ -143,12 +143,10 @@ def cell_checks(table: dict[str, dict[str, dict[str, float]]], phis: dict[str, f
     out = []
     for run in phis:
         t, h = table[run][THROUGHPUT], table[HUMAN][THROUGHPUT]
-        out.append(f"{run}: throughput {t['mean']:.0f} [{t['ci_low']:.0f}, {t['ci_high']:.0f}] veh/h against "
-                   f"{HUMAN} {h['mean']:.0f} [{h['ci_low']:.0f}, {h['ci_high']:.0f}]: "
+        out.append(f"{run}: throughput [veh/h] {interval_text(t)} against {HUMAN} {interval_text(h)}: "
                    f"{'fails (lower, intervals apart)' if t['ci_high'] < h['ci_low'] else 'holds'}")
         c, s = table[run][CRASH], table[BAR][CRASH]
-        out.append(f"{run}: crash per merging vehicle {c['mean']:.2f}% [{c['ci_low']:.2f}, {c['ci_high']:.2f}] "
-                   f"against {BAR} {s['mean']:.2f}% [{s['ci_low']:.2f}, {s['ci_high']:.2f}]: "
+        out.append(f"{run}: crash per merging vehicle [%] {interval_text(c)} against {BAR} {interval_text(s)}: "
                    f"{'fails (higher, intervals apart)' if c['ci_low'] > s['ci_high'] else 'holds'}")
     if len(set(phis.values())) >= 2:
         ego = min(phis, key=phis.get)
@@ -156,8 +154,7 @@ def cell_checks(table: dict[str, dict[str, dict[str, float]]], phis: dict[str, f
             for metric, higher in CLAIM.items():
                 if metric in table[alt] and metric in table[ego]:
                     a, e = table[alt][metric], table[ego][metric]
-                    out.append(f"{alt} against {ego}, {metric}: {a['mean']:.4g} [{a['ci_low']:.4g}, "
-                               f"{a['ci_high']:.4g}] vs {e['mean']:.4g} [{e['ci_low']:.4g}, {e['ci_high']:.4g}]: "
+                    out.append(f"{alt} against {ego}, {metric}: {interval_text(a)} vs {interval_text(e)}: "
                                f"altruism {compare(a, e, higher)}")
     return out
 

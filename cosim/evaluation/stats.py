@@ -158,7 +158,8 @@ def median(rows: Sequence[Mapping[str, Any]], column: str) -> float:
     return float(np.median(got)) if got.size else math.nan
 
 
-def _cell(stats: Mapping[str, float] | None) -> str:
+def interval_text(stats: Mapping[str, float] | None) -> str:
+    """`mean [low, high]` of a summary's figure, with digits by its size; the mean alone without an interval."""
     if not stats or not math.isfinite(stats["mean"]):
         return "-"
     mean, low, high = stats["mean"], stats["ci_low"], stats["ci_high"]
@@ -173,7 +174,7 @@ def format_table(summaries: Mapping[str, Mapping[str, Mapping[str, float]]], epi
     """One row per metric, one column per run: 'mean [CI low, CI high]' (plain text or Markdown)."""
     labels = [label for label in {**SUMMARY_METRICS, **FLOW_METRICS} if any(label in s for s in summaries.values())]
     header = [f"metric (mean [{confidence:.0%} CI])", *(f"{run} (n={episodes[run]})" for run in summaries)]
-    rows = [[label, *(_cell(s.get(label)) for s in summaries.values())] for label in labels]
+    rows = [[label, *(interval_text(s.get(label)) for s in summaries.values())] for label in labels]
     if markdown:
         lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
         lines += ["| " + " | ".join(r) + " |" for r in rows]
