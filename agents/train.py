@@ -68,7 +68,7 @@ from agents.config import TrainConfig, check_device, train_config
 from agents.logs import RunLogger, cut_logs, log_gaps
 from agents.multiagent import Batch, MultiAgentPolicy
 from agents.rollout import Backend
-from agents.validation import better, describe, summarize, validate, validation_seeds
+from agents.validation import better, constant_action, describe, summarize, validate, validation_seeds
 from cosim.config import EVAL_SEED_START, Config, SafetyConfig, read_yaml
 from cosim.errors import ConfigError, EpisodeError, NetError
 from cosim.files import FolderLock, FolderState, atomic_write_text, stale_temporaries
@@ -582,6 +582,12 @@ class _Run:
         log.info("validation at %s %d (%d greedy %s, %.0f s): %s%s", what[:-1], c["episodes"],
                  fig["episodes_validated"], what, spent, describe(fig),
                  f"; best so far, kept as {BEST_NAME}" if best else "")
+        constant = constant_action(fig)
+        if constant is not None:
+            log.warning("the greedy policy took action %d at %.1f%% of its validation decisions: the validation "
+                        "measures that one action, not what the sampling policy has learned (the runs of "
+                        "episodes.csv); such a policy has not learned when to do otherwise yet", constant,
+                        fig[f"greedy_action_{constant}"])
         if self.segments is not None:  # validation reset the workers: the next segment starts new runs
             self.segments.drop()
         self.checkpoint()

@@ -10,13 +10,17 @@ Contract:
   one batched forward per round over every worker; each episode writes SUMO's outputs, so its row (the env's
   episode summary, as `episodes.csv` and `cosim evaluate` have it) carries its SSM conflicts. A worker that fails
   plays its episode again on its replacement; a second failure of the same seed is `EpisodeError`. The rows come
-  back in seed order, each with the AVs' mean greedy return (`av_return`).
+  back in seed order, each with the AVs' mean greedy return (`av_return`) and how often each action was taken
+  (`greedy_actions`, counts over the episode's decisions of every AV).
 - Under demand an episode is a run (warm-up and window) with its window's flow metrics in its row, and the
   return is per AV released, as `episodes.csv`'s.
 - `summarize(rows)` gives a validation's figures: crash and merge success [%] with Wilson intervals, conflicts,
   the merging vehicle's distance and the return with t-intervals (`cosim.evaluation.stats`); under demand the
   window's collisions, merge success per merging vehicle, throughput and delay per vehicle, with t-intervals over
-  the runs (`DEMAND_FIGURES`).
+  the runs (`DEMAND_FIGURES`); and `greedy_action_<k>`, the share [%] of the decisions that took action k.
+- `constant_action(fig)`: the action a validation's greedy policy took at >= `CONSTANT_SHARE` of its decisions, or
+  None. Such a validation measures one constant action (every AV idling, say) rather than what the sampling
+  policy has learned: the trainer says so in its log, since the curve and best.pt then compare no driving.
 - `better(new, best)` is the rule that keeps `best.pt`: the lower upper bound of the crash rate (under demand: of
   the collisions per window); at equal bounds (the same crash count; no collision), the higher mean return, which
   is what the run optimises at its SVO angle.
@@ -56,12 +60,14 @@ def validate(pool: WorkerPool, policy: MultiAgentPolicy, seeds: Sequence[int], u
     todo = list(reversed(seeds))
     playing: dict[int, int] = {}  # worker -> its episode's seed
     returns: dict[int, np.ndarray] = {}  # worker -> (N,) its episode's returns so far
+    taken: dict[int, np.ndarray] = {}  # worker -> (A,) its episode's greedy actions so far, counted
     failed: set[int] = set()
     rows: dict[int, dict[str, Any]] = {}
 
     def start(ws: list[int]) -> None:
         for w in ws:
             returns[w] = np.zeros(len(pool.spec.agents))
+            taken[w] = np.zeros(pool.spec.n_actions, dtype=np.int64)
         pool.send_reset(ws, [playing[w] for w in ws], outputs=True)
 
     first = list(range(min(len(pool), len(todo))))
@@ -85,7 +91,8 @@ def validate(pool: WorkerPool, policy: MultiAgentPolicy, seeds: Sequence[int], u
                 # Per AV, as episodes.csv's return_mean (agents.train); under demand per AV that came and went.
                 demand = "avs_released" in res.episode
                 ret = per_av_released(returns[w].sum(), res.episode) if demand else returns[w].mean()
-                rows[seed] = {**res.episode, "seed": seed, "av_return": float(ret)}
+                rows[seed] = {**res.episode, "seed": seed, "av_return": float(ret),
+                              "greedy_actions": taken[w].tolist()}
                 if todo:
                     playing[w] = todo.pop()
                     restart.append(w)
@@ -96,12 +103,15 @@ def validate(pool: WorkerPool, policy: MultiAgentPolicy, seeds: Sequence[int], u
         if restart:
             start(restart)
         if live:
-            _act_greedy(pool, policy, live, update)
+            for w, acts in _act_greedy(pool, policy, live, update).items():
+                taken[w] += np.bincount(acts, minlength=pool.spec.n_actions)
     return [rows[s] for s in seeds]
 
 
-def _act_greedy(pool: WorkerPool, policy: MultiAgentPolicy, live: list[tuple[int, StepResult]], update: int) -> None:
-    """One batched greedy forward for the live agents of `live` workers; their actions go out at once."""
+def _act_greedy(pool: WorkerPool, policy: MultiAgentPolicy, live: list[tuple[int, StepResult]],
+                update: int) -> dict[int, np.ndarray]:
+    """One batched greedy forward for the live agents of `live` workers; their actions go out at once and come
+    back by worker."""
     rows, agents, masks = [], [], []
     for w, res in live:
         idx = np.flatnonzero(res.alive)
@@ -115,6 +125,8 @@ def _act_greedy(pool: WorkerPool, policy: MultiAgentPolicy, live: list[tuple[int
     pos = {w: k for k, (w, _) in enumerate(live)}
     full[[pos[w] for w in rows], agents] = actions
     pool.send_step([w for w, _ in live], full)
+    by_worker = np.array(rows)
+    return {w: actions[by_worker == w] for w, _ in live}
 
 
 def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95) -> dict[str, float]:
@@ -129,7 +141,21 @@ def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95) -> di
         got = metrics.get(label, {"mean": math.nan, "ci_low": math.nan, "ci_high": math.nan})
         out[name], out[f"{name}_low"], out[f"{name}_high"] = got["mean"], got["ci_low"], got["ci_high"]
     out["return"], out["return_low"], out["return_high"] = ret.mean, ret.low, ret.high
+    taken = np.sum([r["greedy_actions"] for r in rows if "greedy_actions" in r], axis=0)
+    if np.ndim(taken) and taken.sum():
+        out.update({f"greedy_action_{k}": float(100.0 * n / taken.sum()) for k, n in enumerate(taken)})
     return out
+
+
+# A greedy policy that takes one action at this share [%] of its decisions or more is a constant one.
+CONSTANT_SHARE = 99.0
+
+
+def constant_action(fig: Mapping[str, float]) -> int | None:
+    """The action a validation's greedy policy took at >= CONSTANT_SHARE of its decisions, or None."""
+    shares = {int(k.rsplit("_", 1)[1]): v for k, v in fig.items() if k.startswith("greedy_action_")}
+    top = max(shares, key=shares.__getitem__, default=None)
+    return top if top is not None and shares[top] >= CONSTANT_SHARE else None
 
 
 def better(new: Mapping[str, float], best: Mapping[str, float] | None) -> bool:

@@ -10,7 +10,7 @@ import torch
 
 from agents.checkpoint import BEST_NAME, POLICY_NAME, TrainedPolicy, find_checkpoint, load_policy
 from agents.train import train
-from agents.validation import FIGURES, better, meets_criterion, summarize, validation_seeds
+from agents.validation import FIGURES, better, constant_action, meets_criterion, summarize, validation_seeds
 from cosim.config import EVAL_SEED_START, SEED_MAX, VALIDATION_SEED_START, load_config
 from cosim.evaluation.runner import evaluate
 from cosim.files import read_csv
@@ -77,6 +77,8 @@ def test_validation_keeps_the_best_and_matches_an_evaluation_on_the_same_seeds(t
     assert find_checkpoint(run, None) == (run / BEST_NAME).resolve()
     assert find_checkpoint(run, None, last=True) == (run / POLICY_NAME).resolve()
     assert (run / "tb").is_dir()
+    shares = [float(best[f"greedy_action_{k}"]) for k in range(5)]
+    assert sum(shares) == pytest.approx(100.0) and min(shares) >= 0.0
 
     # best.pt played by `cosim evaluate` on the validation seeds: the validation's figures, episode for episode.
     summary = evaluate(smoke(), TrainedPolicy(str(run / BEST_NAME)), tmp_path / "eval", episodes=EPISODES,
@@ -124,3 +126,14 @@ def test_a_validation_under_demand_gives_the_windows_flow_over_the_runs() -> Non
     assert fig["collisions"] == pytest.approx(1.0) and fig["collisions_low"] == 0.0  # a count's interval cut at 0
     assert fig["merge"] == pytest.approx(95.0) and fig["delay"] == pytest.approx(50.0)
     assert "crash" not in fig and fig["return"] == pytest.approx(15.0)
+
+
+def test_the_greedy_actions_are_counted_and_a_constant_policy_is_named() -> None:
+    rows = [{"crashed": False, "merged": True, "conflicts": 0, "merger_distance": 100.0, "av_return": 1.0,
+             "greedy_actions": counts} for counts in ([0, 150, 0, 0, 0], [0, 48, 0, 0, 2])]
+    fig = summarize(rows)
+    assert fig["greedy_action_1"] == pytest.approx(99.0) and fig["greedy_action_4"] == pytest.approx(1.0)
+    assert sum(fig[f"greedy_action_{k}"] for k in range(5)) == pytest.approx(100.0)
+    assert constant_action(fig) == 1
+    rows[1]["greedy_actions"] = [0, 40, 0, 0, 10]  # 10 of 200 decisions brake: 95% idle is a policy
+    assert constant_action(summarize(rows)) is None
