@@ -121,7 +121,8 @@ RESUMABLE = frozenset({"train.episodes", "train.budget_min", "train.checkpoint_e
                        "train.device", *(f"safety.{key}" for key in SafetyConfig.model_fields)})
 # What a run from before a key existed did, for the resume's comparison: it trained without action masks, and
 # without a safety layer.
-UNRECORDED = {"train.action_mask": False, "av.shield": "none", "train.segment_steps": 64, "train.segments": False}
+UNRECORDED = {"train.action_mask": False, "av.shield": "none", "train.segment_steps": 64, "train.segments": False,
+              "demand.exit": "terminated"}
 
 
 def run_config(cfg: Config, tc: TrainConfig) -> dict[str, Any]:

@@ -465,6 +465,12 @@ class DemandConfig(_Section):
         None, gt=0, description="observation slots, the most AVs present at once; null: estimated from the AV demand "
         "and the highway's length (an AV beyond it waits to enter) [-]")
     seeds: Int = Field(5, ge=1, description="evaluation runs (seeds) of the window, by default [-]")
+    # An AV's drive does not end where the simulated net does: ending its trajectory there as a terminal state
+    # makes every step it stays worth more than leaving, as long as its reward per step is positive (a time limit
+    # taken for a goal, Pardo et al. 2018), and AVs trained so learned to hold the mainline still (docs/demand.md).
+    exit: Literal["truncated", "terminated"] = Field(
+        "truncated", description="an AV that drives out of the net: truncated, its trajectory bootstrapped from the "
+        "value of its last map, as at a segment's end; or terminated, worth nothing after it (training only)")
 
     @model_validator(mode="after")
     def _window_of_intervals(self) -> Self:

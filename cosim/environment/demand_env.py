@@ -4,7 +4,8 @@ Contract: the config is resolved on the net as in `MergeEnv`, then its demand (`
 plans the run's vehicles (exponential headways on every highway lane and the ramp, a share of the mainline ones
 AVs, `warmup + window` seconds) and starts SUMO with the window's detectors (`cosim.sumo.flow_outputs`).
 `possible_agents` names every AV a run can release, `av_0 .. av_{max_avs-1}` in order of departure, never reused;
-an AV is an agent from the decision after it entered to the one at which it left the net or crashed, and its
+an AV is an agent from the decision after it entered to the one at which it left the net (truncated, or
+terminated with `demand.exit: terminated`) or crashed (terminated), and its
 VelocityMap lives in one of `demand.slots` observation slots, the most present at once (more raise `ConfigError`
 naming `demand.max_avs_present`). Agents act with the 5 meta-actions, every one each decision, and earn the SVO
 reward of `cosim.environment.reward` (the merging vehicles count among the others where observed, each ramp
@@ -15,7 +16,8 @@ truncated. Then SUMO is closed, its outputs parsed (`flow_outputs`) and, with th
 (`cosim.environment.flow_record.FlowRecorder`, also in `record.npz`), kept; `last_summary` holds the run's summary
 with its window's flow metrics (`cosim.environment.flow_metrics.window_metrics`; the last step's infos carry it
 too). A terminated agent's last observation is zeros (its slot may serve an AV that entered in the same step), a
-truncated one's its map at the horizon. `agent_slot(agent)` is a live agent's slot, `slot_names` the slots in order.
+truncated one's its map at the horizon, or, one that left the net, the map it last acted on (the net holds no
+later one), to bootstrap from. `agent_slot(agent)` is a live agent's slot, `slot_names` the slots in order.
 With `sim.av_driver: sumo` SUMO drives the AVs (the all-human baseline) and actions are ignored. Live agents'
 infos carry `action_mask` as the episode env's do (`action_masks()`).
 """
@@ -113,17 +115,21 @@ class DemandEnv(SumoEnv):
         crashed = {snap.ids[i] for i in np.flatnonzero(snap.crashed)}
         rew, term, trunc, infos = {}, {}, {}, {}
         at_end = self.steps >= self.max_steps
+        truncate_exit = self.cfg.demand.exit == "truncated"
+        left = []
         for a in acting:
-            r = snap.row_of(a)
-            gone = r < 0 or a in crashed
-            term[a], trunc[a] = gone, at_end and not gone
+            out = snap.row_of(a) < 0
+            left += [a] if out else []
+            term[a] = a in crashed or (out and not truncate_exit)
+            trunc[a] = not term[a] and (at_end or out)
             rew[a] = rewards.get(a, 0.0)
             infos[a] = {"crashed": a in crashed}
         live = [a for a in acting if not (term[a] or trunc[a])]
-        final: dict[str, np.ndarray] = {}
+        # Maps not yet updated: a truncated AV that left keeps the one it acted on (a copy: its slot moves on).
+        final = {a: self._obs(a).copy() for a in left if trunc[a]}
         if at_end:  # every agent still in its slot: the truncated ones' last observations, to bootstrap from
             self._update_maps(snap)
-            final = {a: self._obs(a) for a in acting if trunc[a]}
+            final.update({a: self._obs(a) for a in acting if trunc[a] and a not in final})
         for a in acting:
             if term[a] or trunc[a]:
                 self._release(a)

@@ -86,6 +86,30 @@ def test_avs_come_and_go_in_slots_and_a_crash_leaves_the_run_going() -> None:
         env.close()
 
 
+@pytest.mark.parametrize("exit_as", ["truncated", "terminated"])
+def test_an_av_that_leaves_the_net_is_cut_there_with_the_map_it_acted_on(exit_as: str) -> None:
+    env = _env(**{"demand.exit": exit_as})
+    try:
+        obs, _ = env.reset(seed=5)
+        left = 0
+        while env.agents and env.steps < env.max_steps - 1:  # the horizon's truncation is another test's
+            acted = {a: obs[a].copy() for a in env.agents}
+            obs, _, term, trunc, infos = env.step(dict.fromkeys(env.agents, int(Action.IDLE)))
+            for a in acted:
+                if (term[a] or trunc[a]) and not infos[a]["crashed"]:  # drove out of the net
+                    left += 1
+                    if exit_as == "truncated":  # bootstrapped from the map it last acted on, never zeros
+                        assert trunc[a] and not term[a]
+                        assert np.array_equal(obs[a], acted[a]) and obs[a].any()
+                    else:
+                        assert term[a] and not trunc[a] and not obs[a].any()
+                elif infos[a]["crashed"]:
+                    assert term[a] and not trunc[a]
+        assert left >= 3
+    finally:
+        env.close()
+
+
 def test_too_few_observation_slots_is_one_line_naming_the_key() -> None:
     env = _env(**{"demand.max_avs_present": 1, "demand.av_penetration": 0.9})
     try:
