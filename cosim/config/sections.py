@@ -467,7 +467,7 @@ class DemandConfig(_Section):
     seeds: Int = Field(5, ge=1, description="evaluation runs (seeds) of the window, by default [-]")
     # An AV's drive does not end where the simulated net does: ending its trajectory there as a terminal state
     # makes every step it stays worth more than leaving, as long as its reward per step is positive (a time limit
-    # taken for a goal, Pardo et al. 2018), and AVs trained so learned to hold the mainline still (docs/demand.md).
+    # taken for a goal, Pardo et al. 2018).
     exit: Literal["truncated", "terminated"] = Field(
         "truncated", description="an AV that drives out of the net: truncated, its trajectory bootstrapped from the "
         "value of its last map, as at a segment's end; or terminated, worth nothing after it (training only)")

@@ -116,10 +116,11 @@ class DemandEnv(SumoEnv):
         rew, term, trunc, infos = {}, {}, {}, {}
         at_end = self.steps >= self.max_steps
         truncate_exit = self.cfg.demand.exit == "truncated"
-        left = []
+        left: list[str] = []
         for a in acting:
             out = snap.row_of(a) < 0
-            left += [a] if out else []
+            if out:
+                left.append(a)
             term[a] = a in crashed or (out and not truncate_exit)
             trunc[a] = not term[a] and (at_end or out)
             rew[a] = rewards.get(a, 0.0)
