@@ -116,18 +116,16 @@ class DemandEnv(SumoEnv):
         rew, term, trunc, infos = {}, {}, {}, {}
         at_end = self.steps >= self.max_steps
         truncate_exit = self.cfg.demand.exit == "truncated"
-        left: list[str] = []
+        final: dict[str, np.ndarray] = {}  # the observations truncated agents bootstrap from
         for a in acting:
             out = snap.row_of(a) < 0
-            if out:
-                left.append(a)
             term[a] = a in crashed or (out and not truncate_exit)
             trunc[a] = not term[a] and (at_end or out)
+            if out and trunc[a]:  # maps not yet updated: the one it acted on (a copy: its slot moves on)
+                final[a] = self._obs(a).copy()
             rew[a] = rewards.get(a, 0.0)
             infos[a] = {"crashed": a in crashed}
         live = [a for a in acting if not (term[a] or trunc[a])]
-        # Maps not yet updated: a truncated AV that left keeps the one it acted on (a copy: its slot moves on).
-        final = {a: self._obs(a).copy() for a in left if trunc[a]}
         if at_end:  # every agent still in its slot: the truncated ones' last observations, to bootstrap from
             self._update_maps(snap)
             final.update({a: self._obs(a) for a in acting if trunc[a] and a not in final})
