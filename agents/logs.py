@@ -21,9 +21,7 @@ from typing import Any
 from torch.utils.tensorboard import SummaryWriter
 
 from cosim.errors import CosimError
-from cosim.files import AppendCsv, read_csv, write_csv
-
-VALIDATION_LOG = "validation.csv"  # one row per validation (agents.validation)
+from cosim.files import VALIDATION_LOG, AppendCsv, read_csv, write_csv
 
 
 def cut_csv(path: Path, key: str, last: int) -> None:

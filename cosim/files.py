@@ -9,10 +9,10 @@ and raises an OSError naming `path`, not the temporary; `atomic_write_text` and 
 `stale_temporaries(folder, name)` lists what an interrupted atomic write of `name` left behind. `AppendCsv`
 appends rows flushed one by one, keeps an existing file's header (a row with a new key widens it; a missing
 key is an empty cell), and drops a half-written last line left by an interrupted run, so runs can resume.
-The project's CSV tables go through here only: `read_csv(path, ints)` (complete rows as dicts of strings; none
-for a missing file; a `CosimError` naming the file and line for a repeated header, which two processes writing
-one file leave, or a cell of an `ints` column that is no integer), `write_csv(path, rows, fields)` (atomic),
-`AppendCsv`, and `column(rows, name)`, a column as floats (booleans as 0/1, empty or unparsable cells as NaN).
+The project's CSV tables go through here only: `read_csv(path, ints)` (complete rows as dicts of strings, gzipped
+files too; none for a missing file; a `CosimError` naming the file and line for a repeated header, which two
+processes writing one file leave, or a cell of an `ints` column that is no integer), `write_csv(path, rows, fields)`
+(atomic), `AppendCsv`, and `column(rows, name)`, a column as floats (booleans as 0/1, empty or unparsable cells as NaN).
 `FolderLock(folder, command)`: one writer per results folder (a lock the kernel drops when its owner dies).
 `FolderState.capture(folder)` / `restore()`: a results folder put back as a command found it.
 """
@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import csv
 import fcntl
+import gzip
 import io
 import json
 import math
@@ -38,6 +39,8 @@ import numpy as np
 from cosim.errors import CosimError
 
 LOCK_NAME = ".cosim.lock"
+# A training run's validation curve: agents.logs writes it, the learning plots read it (cosim never imports agents).
+VALIDATION_LOG = "validation.csv"
 
 
 def _umask() -> int:
@@ -122,14 +125,15 @@ def stale_temporaries(folder: Path, name: str) -> list[Path]:
 
 
 def read_csv(path: Path, ints: Sequence[str] = ()) -> list[dict[str, str]]:
-    """The complete rows of a CSV file with a header; a half-written last row (an interrupted run) is dropped.
-    `CosimError` naming the file and the line for a line that repeats the header, or a cell of a column in `ints`
-    that is no integer: damage that rerunning into the folder cannot repair."""
+    """The complete rows of a CSV file with a header (gzipped where its name ends in .gz, as the training logs
+    kept in results/ are); a half-written last row (an interrupted run) is dropped. `CosimError` naming the file
+    and the line for a line that repeats the header, or a cell of a column in `ints` that is no integer: damage
+    that rerunning into the folder cannot repair."""
     path = Path(path)
     if not path.is_file():
         return []
     rows = []
-    with path.open(newline="") as f:
+    with (gzip.open(path, "rt", newline="") if path.suffix == ".gz" else path.open(newline="")) as f:
         reader = csv.DictReader(f)
         for row in reader:
             if None in row.values() or None in row:

@@ -4,7 +4,9 @@ of `agents.validation.meets_criterion` held, with its episodes and wall time.
     python scripts/episodes_to_criterion.py runs/learner/* --out results/learner
 
 The merge reference of altruistic runs is the `courteous` rule's merge success on the same validation seeds,
-evaluated once into `OUT/courteous_validation/` (resumable). Writes `OUT/criterion.md` and `OUT/criterion.json`.
+evaluated once into `OUT/courteous_validation/` (resumable). Writes `OUT/criterion.md`, `OUT/criterion.json` and
+`OUT/learning_curves.png`: training and validation curves, one line per SVO angle and setting (mean over its seeds,
+with a band across them), a star where each run first met the criterion.
 """
 
 from __future__ import annotations
@@ -17,13 +19,13 @@ import sys
 from pathlib import Path
 
 from agents.config import train_config
-from agents.logs import VALIDATION_LOG
 from agents.validation import CRASH_HIGH_MAX, CRASH_MAX, MERGE_GAP, meets_criterion
 from cosim.config import DEFAULT_CONFIG, VALIDATION_SEED_START, Config, load_config
 from cosim.environment.reward import TERMS
 from cosim.errors import CosimError, run_script
+from cosim.evaluation import plots
 from cosim.evaluation.runner import Baseline, evaluate
-from cosim.files import atomic_write_text, read_csv, write_json
+from cosim.files import VALIDATION_LOG, atomic_write_text, read_csv, write_json
 
 log = logging.getLogger("criterion")
 
@@ -69,6 +71,16 @@ def main() -> None:
         curve = ", ".join(f"{c:.1f} ({e:,.0f})" for e, c in r["curve"])
         lines.append(f"| {r['run']} | {r['phi']:.4f} | {r['seed']} | {r['differs'] or 'nothing'} | {curve} | {met} | "
                      f"{hours} |")
+    logs = [next((p for p in (run / "episodes.csv", run / "episodes.csv.gz") if p.is_file()), run / "episodes.csv")
+            for run in runs]  # a run kept in results/ has its log gzipped (scripts/snapshot_run.py)
+    groups: dict[str, list[Path]] = {}
+    for log_path, r in zip(logs, rows, strict=True):
+        groups.setdefault(f"phi={r['phi']:.3f}" + (f", {r['differs']}" if r["differs"] else ""), []).append(log_path)
+    met = {log_path: r["met_at_episodes"] for log_path, r in zip(logs, rows, strict=True)
+           if r["met_at_episodes"] is not None}
+    plots.training_curves(groups, args.out / "learning_curves.png", criterion_met=met,
+                          caption=plots.caption_text(plots.short_path(first.net.file),
+                                                     [str(r / "config.yaml") for r in runs], [str(r) for r in runs]))
     atomic_write_text(args.out / "criterion.md", "\n".join(lines) + "\n")
     write_json(args.out / "criterion.json", {"merge_reference": reference, "runs": rows})
     print("\n".join(lines))

@@ -3,8 +3,10 @@ and to go on from it, without the resumable checkpoint (optimizer state, tens of
 
     python scripts/snapshot_run.py runs/learner/base_pi4_s1 --out results/learner/base_pi4_s1
 
-Copies `config.yaml`, `net.json`, `config_changes.yaml`, `updates.csv`, `validation.csv` and `episodes.csv`
-(gzipped), and writes `policy.pt` and `best.pt` with float16 weights (`agents.checkpoint.export_policy`). Where the
+Copies `config.yaml` (its net's paths made relative to OUT, so that a clone of the repository anywhere finds the net
+the run trained on: a run writes them absolute), `net.json`, `config_changes.yaml`, `updates.csv`, `validation.csv`
+and `episodes.csv` (gzipped), and writes `policy.pt` and `best.pt` with float16 weights
+(`agents.checkpoint.export_policy`). Where the
 run folder itself is gone, `cosim train --init-from OUT/policy.pt` is not a resume: it starts a new run from these
 weights with a fresh optimizer (say so beside any figure).
 """
@@ -14,15 +16,29 @@ from __future__ import annotations
 import argparse
 import gzip
 import logging
+import os
 import shutil
 from pathlib import Path
 
+import yaml
+
 from agents.checkpoint import BEST_NAME, POLICY_NAME, export_policy
 from cosim.errors import CosimError, run_script
+from cosim.files import atomic_write_text
 
 log = logging.getLogger("snapshot")
 
-COPIED = ("config.yaml", "net.json", "config_changes.yaml", "updates.csv", "validation.csv")
+COPIED = ("net.json", "config_changes.yaml", "updates.csv", "validation.csv")
+
+
+def portable_config(config: Path, out: Path) -> None:
+    """`config` (a run's config.yaml) written into `out` with `net.file` and `net.description` relative to `out`
+    (`cosim.config.load_config` reads a YAML file's net paths relative to its folder)."""
+    data = yaml.safe_load(config.read_text(encoding="utf-8"))
+    for key in ("file", "description"):
+        if data["net"].get(key):
+            data["net"][key] = os.path.relpath(Path(data["net"][key]).resolve(), out.resolve())
+    atomic_write_text(out / "config.yaml", yaml.safe_dump(data, sort_keys=False))
 
 
 def main() -> None:
@@ -34,6 +50,7 @@ def main() -> None:
     if not (args.run / POLICY_NAME).is_file():
         raise CosimError(f"{args.run}: no {POLICY_NAME}; not a training run folder, or one without a checkpoint yet")
     args.out.mkdir(parents=True, exist_ok=True)
+    portable_config(args.run / "config.yaml", args.out)
     for name in COPIED:
         if (args.run / name).is_file():
             shutil.copyfile(args.run / name, args.out / name)

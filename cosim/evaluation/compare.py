@@ -102,7 +102,7 @@ def compare(dirs: Sequence[Path], out_dir: Path, labels: Sequence[str] | None = 
 VIDEO = (".mp4", ".gif")
 
 # What makes two evaluations comparable, as summary.json records it: the same episodes of the same scenario.
-COMPARABLE = {"net": "net", "net_sha256": "net file content (net_sha256)", "first_seed": "first evaluation seed",
+COMPARABLE = {"net_sha256": "net file content (net_sha256)", "first_seed": "first evaluation seed",
               "requested_episodes": "episodes",
               "scenario_sha256": "scenario (net, simulation, drivers, observation: scenario_sha256)"}
 

@@ -10,7 +10,9 @@ figure has a title, axis labels with units, legends outside the axes (they cover
   lane's start and end marked (`accel_lane_marks`: where a merging vehicle reaches them, by its start).
 - `training_curves`: return, crash rate, merge rate, distance over training episodes: per group (an SVO
   angle, or a run) the mean over its runs (seeds) of each run's rolling mean, with a band from the lowest to
-  the highest run, and a marker where the group's crash rate first falls to `CRASH_TARGET` or below.
+  the highest run, and a marker where the group's crash rate first falls to `CRASH_TARGET` or below; beside
+  them, where a run has a `validation.csv` (`train.eval_every`), the greedy validation's crash and merge rates
+  (mean over the group's runs, dashed, with their band) and a star where each run first met a given criterion.
 - `time_space`: time-space diagram of the merge area (each vehicle's first moment in a collision marked, the
   legend's "crashed" only where there is one), and the guide AV's speed profile and actions.
 - `top_views`: a few top-view snapshots around the merge.
@@ -39,7 +41,7 @@ from cosim.environment.render import COLOURS as TOP_VIEW_COLOURS
 from cosim.environment.render import lane_markings, top_view
 from cosim.environment.velocity_map import RoadRaster, rasterize_road
 from cosim.evaluation.store import load_trajectory, trajectory_files
-from cosim.files import atomic_path, column, read_csv
+from cosim.files import VALIDATION_LOG, atomic_path, column, read_csv
 from cosim.sumo.roadnet import load_roadnet
 from cosim.sumo.setting import Setting
 from cosim.sumo.snapshot import KIND_HV, KIND_MERGER
@@ -59,6 +61,8 @@ TRAINING_COLUMNS: dict[str, tuple[float, tuple[str, ...]]] = {
     "mean distance [m]": (1.0, ("mean_distance", "distance")),
 }
 CRASH_TARGET = 2.0  # [%] the crash rate a trained policy should get below (training curves mark it)
+# Training panels that a run's validation (`VALIDATION_LOG`, already in %) draws on too: panel -> its column.
+VALIDATION_COLUMNS = {"crash rate [% of episodes]": "crash", "merge rate [% of episodes]": "merge"}
 
 
 def save(fig: Figure, path: Path) -> Path:
@@ -197,13 +201,22 @@ def _rolling(y: np.ndarray, window: int) -> np.ndarray:
 
 
 def training_curves(groups: Mapping[str, Sequence[Path]], path: Path, window: int = 100,
-                    caption: str = "") -> Path | None:
+                    caption: str = "", criterion_met: Mapping[Path, float] | None = None) -> Path | None:
     """Per group (label -> the training logs of its runs, e.g. an SVO angle's seeds) the mean over its runs of
     each run's rolling mean over `window` episodes (shorter for short logs), up to the shortest run's length,
     with a band from the lowest to the highest run; a marker where the group's crash rate first falls to
-    `CRASH_TARGET` or below. None if no log has a known column."""
+    `CRASH_TARGET` or below. The validations logged beside a run's log (`VALIDATION_LOG`) are drawn on the crash
+    and merge panels: the group's mean over its runs at the episodes all of them validated at, dashed with dots,
+    and the band over the runs; `criterion_met` (a training log -> the episodes at which its run first met
+    a criterion, e.g. `agents.validation.meets_criterion`) puts a star on that run's validation. None if no log
+    has a known column."""
     data = {label: [read_training_log(p) for p in paths if p.is_file()] for label, paths in groups.items()}
     data = {label: logs for label, logs in data.items() if logs}
+    validated = {label: [(p, rows) for p in paths if p.is_file() and (rows := read_csv(p.with_name(VALIDATION_LOG)))]
+                 for label, paths in groups.items() if label in data}
+    validations = {label: [rows for _, rows in runs] for label, runs in validated.items()}
+    met = {label: [(criterion_met[p], rows) for p, rows in runs if p in (criterion_met or {})]
+           for label, runs in validated.items()}
     panels = [(title, scale, names) for title, (scale, names) in TRAINING_COLUMNS.items()
               if any(n in cols for logs in data.values() for cols in logs for n in names)]
     if not panels:
@@ -236,6 +249,8 @@ def training_curves(groups: Mapping[str, Sequence[Path]], path: Path, window: in
                 below = np.flatnonzero(mean <= CRASH_TARGET + 1e-9)  # 2.0000000000000004 is 2%
                 if below.size:
                     ax.plot(x[below[0]], mean[below[0]], marker="v", ms=9, color=color, mec="k", zorder=5)
+            if title in VALIDATION_COLUMNS and validations[label]:
+                _validation_curve(ax, validations[label], met[label], VALIDATION_COLUMNS[title], color)
         runs = f"{len(logs)} runs" if len(logs) > 1 else "1 run"
         handles.append(Line2D([], [], color=color, lw=1.6, label=f"{label} ({runs})"))
     for ax, (title, _, _) in zip(axes, panels, strict=False):
@@ -248,10 +263,35 @@ def training_curves(groups: Mapping[str, Sequence[Path]], path: Path, window: in
         handles.append(Patch(color="0.6", alpha=0.4, label="range over the runs (seeds)"))
     handles.append(Line2D([], [], ls="none", marker="v", ms=8, color="0.5", mec="k",
                           label=f"crash rate first <= {CRASH_TARGET:g}% (dotted line)"))
+    if any(validations.values()):
+        handles.append(Line2D([], [], color="0.4", ls="--", marker="o", ms=4, lw=1.2,
+                              label="validation: greedy episodes on the validation seeds"))
+    if any(met.values()):
+        handles.append(Line2D([], [], ls="none", marker="*", ms=12, color="0.5", mec="k",
+                              label="a run's validation first meeting the criterion"))
     axes[ncols - 1].legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)
     fig.suptitle(f"Training: rolling mean over {window} episode{'s' if window > 1 else ''}, mean over runs")
     add_caption(fig, caption)
     return save(fig, path)
+
+
+def _validation_curve(ax: Any, runs: Sequence[Sequence[Mapping[str, str]]],
+                      met: Sequence[tuple[float, Sequence[Mapping[str, str]]]], name: str, color: str) -> None:
+    """One group's validations on `ax`: the mean over its runs of column `name` at the episodes every run
+    validated at (runs validating every 500 and every 1,000 episodes meet at each 1,000th), the band over the
+    runs, and a star on each run's validation at the episodes it first met the criterion."""
+    curves = [dict(zip(column(rows, "episodes"), column(rows, name), strict=True)) for rows in runs]
+    x = np.array(sorted(set.intersection(*(set(c) for c in curves))))
+    if not x.size:
+        return
+    stack = np.array([[c[e] for e in x] for c in curves])
+    ax.plot(x, np.nanmean(stack, axis=0), color=color, ls="--", marker="o", ms=4, lw=1.2, zorder=4)
+    if len(runs) > 1:
+        ax.fill_between(x, np.nanmin(stack, axis=0), np.nanmax(stack, axis=0), color=color, alpha=0.08, lw=0)
+    for episodes, rows in met:
+        at = np.flatnonzero(column(rows, "episodes") == episodes)
+        if at.size:
+            ax.plot(episodes, column(rows, name)[at[0]], marker="*", ms=13, color=color, mec="k", zorder=6)
 
 
 def _vehicle_paths(traj: Mapping[str, np.ndarray]) -> list[tuple[str, int, np.ndarray, np.ndarray, np.ndarray]]:

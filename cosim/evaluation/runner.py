@@ -373,6 +373,15 @@ def _has_episodes(csv_path: Path) -> bool:
         return True
 
 
+def _same_with_todays_defaults(saved: Path, meta: dict[str, Any]) -> bool:
+    """Whether a folder's config.yaml, written before keys were added to the config (each added with the default
+    that keeps the old behaviour), is the config evaluated now once those keys take their defaults."""
+    try:
+        return config_hash(load_config(saved).to_dict()) == meta["config_sha256"]
+    except CosimError:  # a config today's schema refuses is not today's
+        return False
+
+
 def _claim(out_dir: Path, meta: dict[str, Any], cfg: Config) -> None:
     """Write evaluation.json and config.yaml, or check that an existing evaluation is the same one."""
     path = out_dir / "evaluation.json"
@@ -384,16 +393,17 @@ def _claim(out_dir: Path, meta: dict[str, Any], cfg: Config) -> None:
         if not isinstance(old, dict):  # what the folder evaluated is unknown: resuming could mix two evaluations
             raise CosimError(f"{path}: not a JSON object ({old}); it records what this folder evaluated: move the "
                              "folder away and evaluate into a new --out")
-        # trained_updates, model_sha256: only where recorded (folders from before they were).
+        # trained_updates, model_sha256: only where recorded (folders from before they were); the net's path only
+        # where its content was not (a folder cloned with its net elsewhere is the same evaluation).
         later = ("trained_updates", "model_sha256", "net_sha256")
-        differs = [k for k in ("policy", "checkpoint", "greedy", "net", *later)
-                   if old.get(k) != meta[k] and (k in old or k not in later)]
+        compared = ("policy", "checkpoint", "greedy", *(() if "net_sha256" in old else ("net",)), *later)
+        differs = [k for k in compared if old.get(k) != meta[k] and (k in old or k not in later)]
         if differs:
             raise CosimError(f"{out_dir}: holds an evaluation with other {', '.join(differs)} "
                              f"({', '.join(f'{k}={old.get(k)!r}' for k in differs)}); choose another --out")
         # Folders from before the hash was stored: hash their config.yaml.
         old_hash = old.get("config_sha256") or config_hash(yaml.safe_load((out_dir / "config.yaml").read_text()))
-        if old_hash != meta["config_sha256"]:
+        if old_hash != meta["config_sha256"] and not _same_with_todays_defaults(out_dir / "config.yaml", meta):
             raise ConfigError(f"{out_dir}: holds an evaluation with another config (see its config.yaml; a "
                               f"different --set, --config or net?); resuming would mix episodes of both in one "
                               f"summary: choose another --out")

@@ -115,22 +115,30 @@ def checked_rows(e: Evaluation) -> list[dict[str, str]]:
     return rows
 
 
+def _episodes_keys(config: Mapping[str, Any], sections: Sequence[str], sim: Sequence[str]) -> str:
+    """Canonical JSON of `config` without `sections`, the `sim` keys named, and where the net's files are
+    (`net.file`, `net.description`): an evaluation records the net's content (`net_sha256`), so a folder moved or
+    cloned with its net elsewhere is still the same evaluation."""
+    kept = {k: v for k, v in config.items() if k not in sections}
+    kept["sim"] = {k: v for k, v in config.get("sim", {}).items() if k not in sim}
+    kept["net"] = {k: v for k, v in config.get("net", {}).items() if k not in ("file", "description")}
+    return json.dumps(kept, sort_keys=True, separators=(",", ":"), default=str)
+
+
 def scenario_hash(config: Mapping[str, Any]) -> str:
-    """sha256 of what makes the episodes themselves (net, simulation, scenario, drivers, observation), leaving out
-    what policies may differ in when compared: the reward (the SVO angle) and who drives the AVs."""
-    kept = {k: v for k, v in config.items() if k not in ("train", "evaluate", "reward")}
-    kept["sim"] = {k: v for k, v in config.get("sim", {}).items() if k not in ("output_dir", "av_driver")}
-    return hashlib.sha256(json.dumps(kept, sort_keys=True, separators=(",", ":"), default=str).encode()).hexdigest()
+    """sha256 of what makes the episodes themselves (simulation, scenario, drivers, observation; the net by its
+    content elsewhere), leaving out what policies may differ in when compared: the reward (the SVO angle) and who
+    drives the AVs."""
+    text = _episodes_keys(config, ("train", "evaluate", "reward"), ("output_dir", "av_driver"))
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def config_hash(config: Mapping[str, Any]) -> str:
     """sha256 of a resolved config (`Config.to_dict()`) as canonical JSON, over what shapes the episodes: not
-    `sim.output_dir` (where the folder is: a moved or copied evaluation still resumes), nor the `train` and
-    `evaluate` sections (how many episodes and workers; the policy is compared on its own)."""
-    kept = {k: v for k, v in config.items() if k not in ("train", "evaluate")}
-    kept["sim"] = {k: v for k, v in config.get("sim", {}).items() if k != "output_dir"}
-    text = json.dumps(kept, sort_keys=True, separators=(",", ":"), default=str)
-    return hashlib.sha256(text.encode()).hexdigest()
+    where the folder and the net are (`sim.output_dir`, the net's paths: a moved or copied evaluation still
+    resumes), nor the `train` and `evaluate` sections (how many episodes and workers; the policy is compared on
+    its own)."""
+    return hashlib.sha256(_episodes_keys(config, ("train", "evaluate"), ("output_dir",)).encode()).hexdigest()
 
 
 def trajectory_files(out_dir: Path) -> list[Path]:

@@ -4,6 +4,7 @@ CSV files named with their line, one writer per folder (a lock that a killed own
 from __future__ import annotations
 
 import csv
+import gzip
 import os
 import signal
 import subprocess
@@ -57,6 +58,16 @@ def test_read_csv_names_the_file_and_line_of_a_repeated_header_or_a_bad_integer(
     with pytest.raises(CosimError, match=rf"{path}: line 3: seed 'x7' is not an integer"):
         read_csv(path, ints=("seed",))
     assert len(read_csv(path)) == 2  # a column not checked stays as text
+
+
+def test_read_csv_reads_a_gzipped_log_as_the_plain_one(tmp_path: Path) -> None:
+    # A run kept in results/ has its episode log gzipped (scripts/snapshot_run.py); the plots read it unchanged.
+    text = "episode,crashed\n1,1\n2,0\n3"
+    (tmp_path / "episodes.csv").write_text(text)
+    with gzip.open(tmp_path / "episodes.csv.gz", "wt") as f:
+        f.write(text)
+    assert read_csv(tmp_path / "episodes.csv.gz") == read_csv(tmp_path / "episodes.csv") == [
+        {"episode": "1", "crashed": "1"}, {"episode": "2", "crashed": "0"}]
 
 
 def test_a_folder_lock_has_one_holder_and_names_it(tmp_path: Path) -> None:

@@ -22,7 +22,7 @@ from cosim.environment.control import Action
 from cosim.errors import ConfigError, CosimError, NetError
 from cosim.evaluation.compare import compare
 from cosim.evaluation.runner import Baseline, Job, evaluate, run_episodes
-from cosim.evaluation.store import summarize_evaluation
+from cosim.evaluation.store import config_hash, summarize_evaluation
 from cosim.files import read_csv
 from sumo_net.build import run_netconvert
 
@@ -113,6 +113,40 @@ def test_resume_with_another_config_is_refused(idle_eval: Path, tmp_path: Path) 
     with pytest.raises(ConfigError, match="another config"):
         evaluate(_cfg("reward.phi=0.5"), Baseline("idle"), out, episodes=4, seed=100, plots=False)
     evaluate(_cfg(), Baseline("idle"), out, episodes=3, seed=100, plots=False)  # the same config resumes
+
+
+def test_a_folder_cloned_elsewhere_with_its_net_resumes(idle_eval: Path, tmp_path: Path) -> None:
+    # A repository cloned to another path: the folder and the net (same content) are elsewhere, and the folder's
+    # own records name the old paths. It resumes; another net's content is refused.
+    out = tmp_path / "clone" / "idle"
+    shutil.copytree(idle_eval, out)
+    net_dir = shutil.copytree(Path("sumo_net/dilemma"), tmp_path / "clone" / "dilemma")
+    evaluate(_cfg(f"net.file={net_dir / 'dilemma.net.xml'}"), Baseline("idle"), out, episodes=4, seed=100,
+             trajectories=0, plots=False)
+    assert [int(r["seed"]) for r in read_csv(out / "episodes.csv")] == [100, 101, 102, 103]
+    with (net_dir / "dilemma.net.xml").open("a") as f:
+        f.write("<!-- edited -->\n")
+    with pytest.raises(CosimError, match="other net_sha256"):
+        evaluate(_cfg(f"net.file={net_dir / 'dilemma.net.xml'}"), Baseline("idle"), out, episodes=5, seed=100,
+                 trajectories=0, plots=False)
+
+
+def test_a_folder_written_before_a_config_key_existed_resumes(idle_eval: Path, tmp_path: Path) -> None:
+    # A key added to the config since (here demand.exit, taken out of the folder's config.yaml and its hash) takes
+    # the default that keeps the old behaviour: the folder holds the same evaluation and resumes; one whose
+    # config differs in a value does not.
+    out = tmp_path / "older"
+    shutil.copytree(idle_eval, out)
+    saved = yaml.safe_load((out / "config.yaml").read_text())
+    del saved["demand"]["exit"]
+    (out / "config.yaml").write_text(yaml.safe_dump(saved, sort_keys=False))
+    meta = json.loads((out / "evaluation.json").read_text())
+    meta["config_sha256"] = config_hash(saved)
+    (out / "evaluation.json").write_text(json.dumps(meta))
+    evaluate(_cfg(), Baseline("idle"), out, episodes=4, seed=100, trajectories=0, plots=False)
+    assert [int(r["seed"]) for r in read_csv(out / "episodes.csv")] == [100, 101, 102, 103]
+    with pytest.raises(ConfigError, match="another config"):
+        evaluate(_cfg("reward.phi=0.5"), Baseline("idle"), out, episodes=4, seed=100, plots=False)
 
 
 def test_evaluate_and_compare_summarise_the_same_rows(idle_eval: Path, tmp_path: Path) -> None:

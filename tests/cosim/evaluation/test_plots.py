@@ -175,3 +175,41 @@ def test_training_curves_one_line_per_group_with_its_band_and_the_crash_target(f
     # (1/3 of 6%): 94 of its 100 episodes after its fall at 500, i.e. at the window ending at episode 594.
     (marker,) = [line for line in crash.lines if line.get_marker() == "v"]
     assert marker.get_xdata()[0] == 594 and marker.get_ydata()[0] == pytest.approx(2.0)
+
+
+def _validations(folder: Path, crash: list[float], merge: list[float]) -> None:
+    with (folder / "validation.csv").open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["update", "episodes", "crash", "crash_high", "merge"])
+        w.writerows([10 * (i + 1), 500 * (i + 1), c, c + 3.0, m]
+                    for i, (c, m) in enumerate(zip(crash, merge, strict=True)))
+
+
+def test_training_curves_draw_the_validations_beside_training_and_star_where_the_criterion_held(
+        figures, readable, tmp_path: Path) -> None:
+    # Two seeds of one angle, each run in its folder with its validations (every 500 episodes; the second stopped
+    # one validation earlier), and a run without validations: the dashed curve is the mean of the two at the
+    # episodes both validated at, and the criterion's star sits on the run's own validation at the episodes given.
+    logs = []
+    for seed, (crash, merge) in enumerate([([40.0, 10.0, 1.5], [50.0, 90.0, 97.0]), ([60.0, 4.0], [70.0, 80.0])]):
+        (tmp_path / f"s{seed}").mkdir()
+        logs.append(_log(tmp_path / f"s{seed}" / "episodes.csv", np.zeros(1600, int)))
+        _validations(tmp_path / f"s{seed}", crash, merge)
+    (tmp_path / "other").mkdir()
+    other = _log(tmp_path / "other" / "episodes.csv", np.zeros(1600, int))
+    plots.training_curves({"phi=0.785": logs, "phi=0.000": [other]}, tmp_path / "t.png", caption=CAPTION,
+                          criterion_met={logs[0]: 1500.0})
+    (fig,) = figures
+    readable(fig, CAPTION)
+    panel = {ax.get_ylabel(): ax for ax in fig.axes if ax.get_visible()}
+    for label, expected in (("crash rate [% of episodes]", [50.0, 7.0]), ("merge rate [% of episodes]", [60.0, 85.0])):
+        (dashed,) = [line for line in panel[label].lines if line.get_linestyle() == "--"]  # none for the other run
+        assert list(dashed.get_xdata()) == [500, 1000] and list(dashed.get_ydata()) == pytest.approx(expected)
+        assert dashed.get_color() == "C0"
+    stars = [line for line in panel["crash rate [% of episodes]"].lines if line.get_marker() == "*"]
+    assert [(s.get_xdata()[0], s.get_ydata()[0]) for s in stars] == [(1500.0, 1.5)]
+    (star,) = [line for line in panel["merge rate [% of episodes]"].lines if line.get_marker() == "*"]
+    assert star.get_ydata()[0] == 97.0
+    legends = [leg for leg in [*fig.legends, *(ax.get_legend() for ax in fig.axes)] if leg is not None]
+    labels = [t.get_text() for leg in legends for t in leg.get_texts()]
+    assert "a run's validation first meeting the criterion" in labels
