@@ -503,6 +503,11 @@ class RewardWeights(_Section):
     # (45.3 vs 42.8). Against SUMO-driven AVs, though, gap-opening ones earn no more with +10, so the default
     # scenario sets 50 (configs/default.yaml, results/calibration/merge_weight.md).
     merge: Number = Field(10.0, ge=0, description="+1 for the merging vehicle on the step it merges [-]")
+    # MARL_CAVs prices a time gap under 1.2 s at 4 x this against a speed reward of up to 1 per step; the paper's
+    # reward has no such term, so it is off unless asked for.
+    headway: Number = Field(
+        0.0, ge=0, description="min(0, ln(gap / (1.2 s x speed))) for an AV closer to its leader on its lane than "
+        "1.2 s (MARL_CAVs' headway cost), per step [-]")
 
     @model_validator(mode="before")
     @classmethod

@@ -34,7 +34,7 @@ from cosim.config import Config
 from cosim.environment.base import Step, SumoEnv
 from cosim.environment.flow_metrics import window_metrics
 from cosim.environment.flow_record import FlowRecorder
-from cosim.environment.reward import StepChange, svo_rewards, utility_terms, weighted_utility
+from cosim.environment.reward import StepChange, av_gaps, svo_rewards, utility_terms, weighted_utility
 from cosim.environment.velocity_map import VelocityMapper, rasterize_road
 from cosim.errors import ConfigError
 from cosim.files import atomic_path
@@ -164,7 +164,8 @@ class DemandEnv(SumoEnv):
                 v_lane[r], v_invalid[r] = lane_changed[a], invalid[a]
         av = self.cfg.av
         raw = utility_terms(StepChange(snap.distance - prev_d, snap.speed - prev_v, v_lane, v_invalid, snap.crashed,
-                                       self._merged_now, av.max_speed, av.accel, self.cfg.sim.decision_period))
+                                       self._merged_now, av.max_speed, av.accel, self.cfg.sim.decision_period,
+                                       snap.speed, av_gaps(snap, self.cfg.reward.weights)))
         utility = sum(weighted_utility(raw, self.cfg.reward).values())
         rows = snap.rows_of(acting)
         observed = np.zeros((len(acting), len(snap)), bool)

@@ -32,7 +32,7 @@ import numpy as np
 from cosim.config import Config
 from cosim.environment.base import Step, SumoEnv
 from cosim.environment.episode import EndCheck, episode_end, merge_status
-from cosim.environment.reward import StepChange, svo_rewards, utility_terms, weighted_utility
+from cosim.environment.reward import StepChange, av_gaps, svo_rewards, utility_terms, weighted_utility
 from cosim.environment.tracker import EpisodeTracker
 from cosim.environment.velocity_map import VelocityMapper, rasterize_road
 from cosim.errors import SimulationError
@@ -171,7 +171,8 @@ class MergeEnv(SumoEnv):
         if merged_now:
             v_merged[merger_row] = True
         raw = utility_terms(StepChange(snap.distance - prev_d, snap.speed - prev_v, v_lane, v_invalid, snap.crashed,
-                                       v_merged, self.cfg.av.max_speed, self.cfg.av.accel, period))
+                                       v_merged, self.cfg.av.max_speed, self.cfg.av.accel, period, snap.speed,
+                                       av_gaps(snap, self.cfg.reward.weights)))
         weighted = weighted_utility(raw, self.cfg.reward)
         utility = sum(weighted.values())
         observed = self.mapper.observed(snap, rows)

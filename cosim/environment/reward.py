@@ -11,8 +11,10 @@ Contract:
   registry's names are the fields, in order. The terms: `speed` (progress / (max speed * period), in [0, 1]),
   `accel` (-|speed change| / (AV accel * period), every vehicle, so forcing humans to brake costs the social
   part), `lane_change` and `invalid_action` (-1, AVs only), `collision` (-1 if crashed), `merge` (+1 for the
-  merging vehicle on the step it merges).
-- `utility_terms(step)` evaluates every term; `weighted_utility(terms, cfg)` weighs them by `cfg.weights`.
+  merging vehicle on the step it merges), `headway` (min(0, ln(gap / (HEADWAY_TIME x speed))), AVs only: MARL_CAVs'
+  headway cost; weight 0 by default, the paper's reward has none).
+- `av_gaps(snap, weights)` gives a step's AV gaps for `headway`; `utility_terms(step)` evaluates every term;
+  `weighted_utility(terms, cfg)` weighs them by `cfg.weights`.
 - `svo_rewards(u, observed, ego_rows, merger_row, phis)` is the paper's Eq. (3):
   R_i = cos(phi_i) u_i + sin(phi_i) (sum of u over the others i observes + u_M), where, as in the paper's
   sum over k in V~ ∪ {M}, the merging vehicle counts whether observed or not.
@@ -26,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cosim.config import RewardConfig, RewardWeights
+from cosim.sumo.snapshot import KIND_AV, Snapshot
 
 
 @dataclass(frozen=True)
@@ -41,6 +44,13 @@ class StepChange:
     max_speed: float  # [m/s] the AVs'
     max_accel: float  # [m/s^2] the AVs'
     period: float  # [s] decision period
+    speed: np.ndarray | None = None  # [m/s] at the end of the step (None: no headway term, e.g. a hand-made step)
+    gap: np.ndarray | None = None  # [m] each AV's gap to its leader on its lane (Snapshot.leader_gaps), inf: none or
+    # not an AV
+
+
+HEADWAY_TIME = 1.2  # [s] the time gap under which `headway` costs, as MARL_CAVs' HEADWAY_TIME
+MIN_GAP = 0.1  # [m] floor of the gap in `headway`'s logarithm: an overlap (a crash) costs ln(0.1 / (1.2 v)), not -inf
 
 
 Term = Callable[[StepChange], np.ndarray]  # a term's unweighted value per vehicle (V,)
@@ -91,6 +101,23 @@ def _collision(s: StepChange) -> np.ndarray:
 @term("merge")
 def _merge(s: StepChange) -> np.ndarray:
     return s.merged_now.astype(np.float64)
+
+
+@term("headway")
+def _headway(s: StepChange) -> np.ndarray:
+    if s.gap is None or s.speed is None:
+        return np.zeros_like(s.progress)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cost = np.log(np.maximum(s.gap, MIN_GAP) / (HEADWAY_TIME * s.speed))
+    return np.where(np.isfinite(s.gap) & (s.speed > 0), np.minimum(cost, 0.0), 0.0)
+
+
+def av_gaps(snap: Snapshot, weights: RewardWeights) -> np.ndarray | None:
+    """`StepChange.gap` of a snapshot: each AV's gap to its leader, inf for the other vehicles; None (no headway
+    term) where its weight is 0, so the paper's reward costs the step nothing more."""
+    if not weights.headway:
+        return None
+    return np.where(snap.kind == KIND_AV, snap.leader_gaps(), np.inf)
 
 
 def utility_terms(step: StepChange) -> dict[str, np.ndarray]:

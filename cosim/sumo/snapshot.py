@@ -63,6 +63,21 @@ class Snapshot:
         """(N,) int rows of several vehicles, -1 where absent."""
         return np.array([self._rows.get(v, -1) for v in vids], dtype=np.int64)
 
+    def leader_gaps(self) -> np.ndarray:
+        """(V,) [m] each vehicle's gap, bumper to bumper, to the nearest vehicle ahead on its own lane of its own
+        edge; inf where none is there (a leader past the edge's end is not looked for) or the edge is unknown."""
+        gaps = np.full(len(self), np.inf)
+        known = np.flatnonzero(self.edge >= 0)
+        if known.size < 2:
+            return gaps
+        lane_key = self.edge[known].astype(np.int64) * 1024 + self.lane[known]
+        order = known[np.lexsort((self.lane_pos[known], lane_key))]
+        key = self.edge[order].astype(np.int64) * 1024 + self.lane[order]
+        follower, leader = order[:-1], order[1:]
+        same = key[:-1] == key[1:]
+        gaps[follower[same]] = (self.lane_pos[leader] - self.length[leader] - self.lane_pos[follower])[same]
+        return gaps
+
     @classmethod
     def build(cls, time: float = 0.0, **columns: Sequence) -> Snapshot:
         """A snapshot from per-vehicle lists, with defaults for omitted columns (for tests and tools)."""

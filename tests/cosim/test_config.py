@@ -330,6 +330,6 @@ def test_reward_weights_are_a_typed_section() -> None:
     with pytest.raises(ConfigError) as caught:
         load_config(None, {"reward.weights": {"merge": -1, "speeed": 1}})
     assert str(caught.value) == ("reward.weights.speeed: unknown term; the terms: speed, lane_change, invalid_action, "
-                                 "accel, collision, merge")
+                                 "accel, collision, merge, headway")
     with pytest.raises(ConfigError, match=r"^--set reward.weights.merge=-1: must be >= 0, got -1$"):
         load_config(None, ["reward.weights.merge=-1"])

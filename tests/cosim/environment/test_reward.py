@@ -9,7 +9,15 @@ import pytest
 
 import cosim
 from cosim.config import ObservationConfig, RewardConfig, RewardWeights, load_config
-from cosim.environment.reward import TERMS, StepChange, svo_rewards, term, utility_terms, weighted_utility
+from cosim.environment.reward import (
+    TERMS,
+    StepChange,
+    av_gaps,
+    svo_rewards,
+    term,
+    utility_terms,
+    weighted_utility,
+)
 from cosim.environment.velocity_map import RoadRaster, VelocityMapper
 from cosim.errors import ConfigError
 from cosim.sumo.snapshot import KIND_AV, KIND_HV, KIND_MERGER, Snapshot
@@ -88,9 +96,37 @@ def test_utility_terms_and_weights() -> None:
     assert terms["merge"].tolist() == [0.0, 0.0, 1.0]
     cfg = RewardConfig(weights={"speed": 2.0})
     weighted = weighted_utility(terms, cfg)
-    assert list(weighted) == list(TERMS) == ["speed", "lane_change", "invalid_action", "accel", "collision", "merge"]
+    assert list(weighted) == list(TERMS) == ["speed", "lane_change", "invalid_action", "accel", "collision", "merge",
+                                             "headway"]
+    assert terms["headway"].tolist() == [0.0, 0.0, 0.0]  # no gaps given: a step of the paper's reward
     assert weighted["speed"].tolist() == [2.0, 1.0, 0.0]
     assert weighted["collision"].tolist() == [0.0, 0.0, -RewardWeights().collision]
+
+
+def test_headway_costs_an_av_closer_than_1_2_s_to_its_leader_on_its_lane() -> None:
+    # One lane of edge 0: av_0 (front at 10 m) behind hv_0 (front at 30 m, 5 m long: 15 m gap), hv_0 behind av_1
+    # (front at 100 m: 65 m gap); av_2 alone on lane 1; hv_1 on edge 1, the same lane index, does not lead av_1;
+    # av_3 stands still right behind av_1's lane neighbour... on edge 2, where it is alone.
+    snap = Snapshot.build(
+        ids=["av_0", "hv_0", "av_1", "av_2", "hv_1", "av_3"],
+        kind=[KIND_AV, KIND_HV, KIND_AV, KIND_AV, KIND_HV, KIND_AV],
+        edge=[0, 0, 0, 0, 1, 2], lane=[0, 0, 0, 1, 0, 0], lane_pos=[10.0, 30.0, 100.0, 50.0, 5.0, 1.0],
+        speed=[25.0, 20.0, 30.0, 30.0, 30.0, 0.0],
+    )
+    assert snap.leader_gaps().tolist() == [15.0, 65.0, np.inf, np.inf, np.inf, np.inf]
+    gaps = av_gaps(snap, RewardWeights(headway=1.0))
+    assert gaps.tolist() == [15.0, np.inf, np.inf, np.inf, np.inf, np.inf]  # only AVs are charged
+    assert av_gaps(snap, RewardWeights()) is None  # weight 0: the paper's reward, nothing computed
+    step = StepChange(progress=np.zeros(6), speed_change=np.zeros(6), lane_changed=np.zeros(6, bool),
+                      invalid=np.zeros(6, bool), crashed=np.zeros(6, bool), merged_now=np.zeros(6, bool),
+                      max_speed=33.0, max_accel=3.0, period=1.0, speed=snap.speed, gap=gaps)
+    headway = utility_terms(step)["headway"]
+    assert headway[0] == pytest.approx(math.log(15.0 / (1.2 * 25.0)))  # 0.6 s behind: ln(0.5)
+    assert headway[1:].tolist() == [0.0] * 5
+    far = StepChange(**{**step.__dict__, "gap": np.array([40.0, *[np.inf] * 5])})  # 1.6 s: no cost
+    assert utility_terms(far)["headway"].tolist() == [0.0] * 6
+    touching = StepChange(**{**step.__dict__, "gap": np.array([-0.5, *[np.inf] * 5])})  # overlap: bounded
+    assert utility_terms(touching)["headway"][0] == pytest.approx(math.log(0.1 / 30.0))
 
 
 def test_the_terms_are_the_weights_fields() -> None:
@@ -101,7 +137,8 @@ def test_the_terms_are_the_weights_fields() -> None:
     assert list(schema) == list(TERMS)
     assert all(prop["description"].endswith("[-]") and "default" in prop for prop in schema.values())
     assert {name: prop["default"] for name, prop in schema.items()} == {
-        "speed": 1.0, "lane_change": 0.05, "invalid_action": 0.1, "accel": 0.05, "collision": 5.0, "merge": 10.0}
+        "speed": 1.0, "lane_change": 0.05, "invalid_action": 0.1, "accel": 0.05, "collision": 5.0, "merge": 10.0,
+        "headway": 0.0}
 
 
 def test_a_new_term_is_its_function_and_its_field(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -129,4 +166,26 @@ def test_a_new_term_is_its_function_and_its_field(monkeypatch: pytest.MonkeyPatc
     with pytest.raises(ConfigError) as caught:
         load_config("configs/smoke.yaml", {"reward.weights.constant": 2.0})
     assert str(caught.value) == ("reward.weights.constant: unknown term; the terms: speed, lane_change, "
-                                 "invalid_action, accel, collision, merge")
+                                 "invalid_action, accel, collision, merge, headway")
+
+
+def test_headway_on_real_sumo_charges_the_avs_that_follow_closely() -> None:
+    # The default scene's dense stream: AVs accelerating into it come closer than 1.2 s to their leaders; the term
+    # never rewards, and an AV's cost is its own gap's, as SUMO reports the gap.
+    env = cosim.parallel_env("configs/default.yaml", {"reward.weights.headway": 1.0})
+    costs = []
+    try:
+        env.reset(seed=10_000_003)
+        while env.agents:
+            _, _, _, _, infos = env.step({a: 3 for a in env.agents})  # faster
+            for a, info in infos.items():
+                if a in env.agents and env.snapshot.row_of(a) >= 0:
+                    costs.append((info["reward_terms"]["headway"], env.snapshot, a))
+    finally:
+        env.close()
+    assert all(c <= 0 for c, _, _ in costs) and any(c < 0 for c, _, _ in costs)
+    for cost, snap, a in costs:
+        row = snap.row_of(a)
+        gap, speed = snap.leader_gaps()[row], snap.speed[row]
+        expected = min(0.0, math.log(max(gap, 0.1) / (1.2 * speed))) if np.isfinite(gap) and speed > 0 else 0.0
+        assert cost == pytest.approx(expected)
