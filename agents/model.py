@@ -76,8 +76,13 @@ class VelocityMapEncoder(nn.Module):
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         # (B, C, F, H, W): channels as Conv3D channels, frames as depth. Channels-last: oneDNN's Conv3D on the CPU
         # runs about twice as fast in this layout. One copy makes the type and the layout, the scale is in place:
-        # the input's preparation was about half of a small batch's forward in three copies.
-        x = obs.permute(0, 2, 1, 3, 4).to(torch.float32, memory_format=torch.channels_last_3d)
+        # the input's preparation was about half of a small batch's forward in three copies. The copy walks the
+        # input in the order it writes (B, F, H, W, C), about twice as fast as gathering into channels_last_3d
+        # directly, and writes the dtype autocast would cast it to (bfloat16 in training: half the bytes, and no
+        # second copy by autocast).
+        device = obs.device.type
+        dtype = torch.get_autocast_dtype(device) if torch.is_autocast_enabled(device) else torch.float32
+        x = obs.permute(0, 1, 3, 4, 2).to(dtype, memory_format=torch.contiguous_format).permute(0, 4, 1, 2, 3)
         if obs.dtype == torch.uint8:
             x.div_(255.0)
         return self.fc(self.conv(x))

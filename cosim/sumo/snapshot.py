@@ -70,11 +70,10 @@ class Snapshot:
         known = np.flatnonzero(self.edge >= 0)
         if known.size < 2:
             return gaps
-        lane_key = self.edge[known].astype(np.int64) * 1024 + self.lane[known]
-        order = known[np.lexsort((self.lane_pos[known], lane_key))]
-        key = self.edge[order].astype(np.int64) * 1024 + self.lane[order]
+        key = self.edge.astype(np.int64) * 1024 + self.lane  # one number per lane of an edge
+        order = known[np.lexsort((self.lane_pos[known], key[known]))]  # by lane, then from back to front
         follower, leader = order[:-1], order[1:]
-        same = key[:-1] == key[1:]
+        same = key[follower] == key[leader]
         gaps[follower[same]] = (self.lane_pos[leader] - self.length[leader] - self.lane_pos[follower])[same]
         return gaps
 

@@ -40,6 +40,23 @@ def test_uint8_is_scaled_like_float() -> None:
     torch.testing.assert_close(a, c, atol=1e-3, rtol=1e-3)
 
 
+@pytest.mark.parametrize("bf16", [False, True])
+def test_the_first_conv_gets_frames_as_depth_channels_last_in_the_forward_dtype(bf16: bool) -> None:
+    # (B, F, C, H, W) uint8 in; the Conv3D sees (B, C, F, H, W) scaled to [0, 1], laid out channels-last (oneDNN's
+    # fast layout), in bfloat16 under the training's autocast (no second cast) and float32 without it.
+    net = ActorCritic((2, 4, 8, 16), feature_dim=32, head_hidden=16, bf16=bf16)
+    seen = []
+    net.features.conv[0].register_forward_pre_hook(lambda module, args: seen.append(args[0]))
+    raw = torch.randint(0, 256, (3, 2, 4, 8, 16), dtype=torch.uint8)
+    with torch.no_grad():
+        net(raw)
+    (x,) = seen
+    assert x.dtype == (torch.bfloat16 if bf16 else torch.float32)
+    assert x.shape == (3, 4, 2, 8, 16) and x.is_contiguous(memory_format=torch.channels_last_3d)
+    expected = raw.permute(0, 2, 1, 3, 4).float() / 255.0
+    torch.testing.assert_close(x.float(), expected, atol=0 if not bf16 else 4e-3, rtol=0 if not bf16 else 4e-3)
+
+
 def test_gradient_reaches_every_parameter() -> None:
     torch.manual_seed(0)
     net = ActorCritic((2, 4, 8, 16), feature_dim=32, head_hidden=16)

@@ -104,9 +104,9 @@ def test_utility_terms_and_weights() -> None:
 
 
 def test_headway_costs_an_av_closer_than_1_2_s_to_its_leader_on_its_lane() -> None:
-    # One lane of edge 0: av_0 (front at 10 m) behind hv_0 (front at 30 m, 5 m long: 15 m gap), hv_0 behind av_1
-    # (front at 100 m: 65 m gap); av_2 alone on lane 1; hv_1 on edge 1, the same lane index, does not lead av_1;
-    # av_3 stands still right behind av_1's lane neighbour... on edge 2, where it is alone.
+    # Lane 0 of edge 0: av_0 (front at 10 m) behind hv_0 (front at 30 m, 5 m long: a 15 m gap), hv_0 behind av_1
+    # (front at 100 m: 65 m); av_2 alone on lane 1; hv_1 on lane 0 of edge 1 leads no one of edge 0; av_3 stands
+    # alone on edge 2.
     snap = Snapshot.build(
         ids=["av_0", "hv_0", "av_1", "av_2", "hv_1", "av_3"],
         kind=[KIND_AV, KIND_HV, KIND_AV, KIND_AV, KIND_HV, KIND_AV],
