@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from matplotlib import colormaps
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
@@ -231,7 +232,8 @@ def training_curves(groups: Mapping[str, Sequence[Path]], path: Path, window: in
     window = min(window, max(1, smallest // 5))  # a short log gets a short window, so its curve is more than a point
     handles = []
     for i, (label, logs) in enumerate(data.items()):
-        color = f"C{i % 10}"
+        # Past ten groups (a tuning table's settings) the default cycle repeats: 20 distinct colours instead.
+        color = f"C{i}" if len(data) <= 10 else colormaps["tab20"](i % 20)
         for ax, (title, scale, names) in zip(axes, panels, strict=False):
             curves = [scale * _rolling(cols[name], window) for cols in logs
                       if (name := next((n for n in names if n in cols), None)) is not None]
@@ -276,7 +278,7 @@ def training_curves(groups: Mapping[str, Sequence[Path]], path: Path, window: in
 
 
 def _validation_curve(ax: Any, runs: Sequence[Sequence[Mapping[str, str]]],
-                      met: Sequence[tuple[float, Sequence[Mapping[str, str]]]], name: str, color: str) -> None:
+                      met: Sequence[tuple[float, Sequence[Mapping[str, str]]]], name: str, color: Any) -> None:
     """One group's validations on `ax`: the mean over its runs of column `name` at the episodes every run
     validated at (runs validating every 500 and every 1,000 episodes meet at each 1,000th), the band over the
     runs, and a star on each run's validation at the episodes it first met the criterion."""
