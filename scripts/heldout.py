@@ -26,6 +26,7 @@ import yaml
 
 from cosim.config import EVAL_SEED_START, load_config
 from cosim.errors import CosimError, run_script
+from cosim.evaluation import plots
 from cosim.evaluation.runner import Baseline, evaluate
 from cosim.evaluation.stats import format_table, summarize
 from cosim.evaluation.store import seed_rows
@@ -95,8 +96,18 @@ def main() -> None:
             for run, (phi, _) in runs.items():
                 by_phi[phi] += part[run.name]
             seeds = {phi: sum(p == phi for p, _ in runs.values()) for phi in by_phi}
-            part.update({f"phi {phi:.4f}, {seeds[phi]} seeds pooled": r for phi, r in sorted(by_phi.items())})
+            pooled = {phi: f"phi {phi:.4f}, {seeds[phi]} seeds pooled" for phi in sorted(by_phi)}
+            part.update({pooled[phi]: r for phi, r in sorted(by_phi.items())})
             tables = {name: summarize(r) for name, r in part.items()}
+            if len(by_phi) > 2:  # an angle grid: its trade-off at a glance
+                figure = plots.over_phi({phi: tables[name] for phi, name in pooled.items()}, METRICS,
+                                        args.out / f"{key}_over_phi.png", {"courteous": tables["courteous"]},
+                                        caption=plots.caption_text(
+                                            plots.short_path(load_config(args.runs[0] / "config.yaml").net.file),
+                                            [str(r / "config.yaml") for r in runs], [str(r) for r in runs]),
+                                        title=f"Trained AVs over the SVO angle, {merger} merging vehicle, shield "
+                                              f"{shield}: mean with its 95% interval (pooled over seeds)")
+                lines += [f"![The trade-off over the SVO angle]({figure.name})", ""]
             episodes = {name: len(r) for name, r in part.items()}
             shown = {name: {m: t[m] for m in METRICS if m in t} for name, t in tables.items()}
             lines += [format_table(shown, episodes, markdown=True), ""]

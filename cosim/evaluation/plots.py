@@ -6,6 +6,7 @@ returns the path (or None when there is nothing to draw, e.g. training logs with
 figure has a title, axis labels with units, legends outside the axes (they cover no data) and, given
 `caption` (`caption_text`: the net, config and policy its data came from), that line at its foot.
 - `bars`: crash %, merge %, mean distance, throughput and time loss with 95% intervals, runs side by side.
+- `over_phi`: the trade-off over the SVO angle, one panel per metric, error bars, references dashed.
 - `distance_histogram`: the merging vehicle's distance travelled, overlaid per run, with the acceleration
   lane's start and end marked (`accel_lane_marks`: where a merging vehicle reaches them, by its start).
 - `training_curves`: return, crash rate, merge rate, distance over training episodes: per group (an SVO
@@ -131,6 +132,39 @@ def bars(summaries: Mapping[str, Mapping[str, Mapping[str, float]]], path: Path,
         ax.set_ylabel(metric)
         if "%" in metric:
             ax.set_ylim(0, 105)
+    fig.suptitle(title)
+    add_caption(fig, caption)
+    return save(fig, path)
+
+
+def over_phi(tables: Mapping[float, Mapping[str, Mapping[str, float]]], metrics: Sequence[str], path: Path,
+             references: Mapping[str, Mapping[str, Mapping[str, float]]] | None = None, caption: str = "",
+             title: str = "Trained AVs over the SVO angle: mean with its 95% interval") -> Path:
+    """The trade-off over the SVO angle: one panel per metric, the trained AVs' mean at each angle (`tables`: phi
+    [rad] -> a summary's metrics) with its interval as error bars, joined by a line, and each of `references`
+    (name -> metrics, e.g. a rule's) as a dashed line across."""
+    ncols = min(4, len(metrics))
+    nrows = math.ceil(len(metrics) / ncols)
+    fig = Figure(figsize=(3.4 * ncols, 3.0 * nrows + 0.8), layout="constrained")
+    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+    for ax in axes[len(metrics):]:
+        ax.set_visible(False)
+    phis = sorted(tables)
+    for ax, metric in zip(axes, metrics, strict=False):
+        stats = [tables[p].get(metric, {}) for p in phis]
+        mean = np.array([s.get("mean", math.nan) for s in stats], dtype=float)
+        err = np.nan_to_num(np.array([[s.get("mean", math.nan) - s.get("ci_low", math.nan) for s in stats],
+                                      [s.get("ci_high", math.nan) - s.get("mean", math.nan) for s in stats]]))
+        ax.errorbar(phis, mean, yerr=err, marker="o", capsize=3, color="C0", label="trained AVs")
+        for j, (name, ref) in enumerate((references or {}).items()):
+            if metric in ref:
+                ax.axhline(ref[metric]["mean"], ls=(0, (4, 2)), lw=1, color=f"C{j + 1}", label=name)
+        ax.set_xticks(phis, [f"{p:.2f}" for p in phis])
+        ax.set_xlabel("SVO angle phi [rad]")
+        ax.set_ylabel(metric)
+        ax.set_title(metric.split(" [")[0])
+    axes[ncols - 1].legend(*axes[0].get_legend_handles_labels(), loc="upper left", bbox_to_anchor=(1.02, 1.0),
+                           fontsize=8, frameon=False)
     fig.suptitle(title)
     add_caption(fig, caption)
     return save(fig, path)

@@ -213,3 +213,25 @@ def test_training_curves_draw_the_validations_beside_training_and_star_where_the
     legends = [leg for leg in [*fig.legends, *(ax.get_legend() for ax in fig.axes)] if leg is not None]
     labels = [t.get_text() for leg in legends for t in leg.get_texts()]
     assert "a run's validation first meeting the criterion" in labels
+
+
+def test_over_phi_puts_each_angle_with_its_interval_and_the_references_across(figures, readable,
+                                                                              tmp_path: Path) -> None:
+    def stat(mean: float, half: float) -> dict[str, float]:
+        return {"mean": mean, "ci_low": mean - half, "ci_high": mean + half}
+
+    tables = {0.7854: {"crash [%]": stat(3.0, 1.0), "merge success [%]": stat(94.0, 2.0)},
+              0.0: {"crash [%]": stat(3.2, 1.2), "merge success [%]": stat(55.0, 3.0)},
+              1.5708: {"crash [%]": stat(6.0, 2.0), "merge success [%]": stat(99.0, 1.0)}}
+    plots.over_phi(tables, ["crash [%]", "merge success [%]"], tmp_path / "p.png",
+                   {"courteous": {"merge success [%]": stat(97.3, 1.0)}}, caption=CAPTION)
+    (fig,) = figures
+    readable(fig, CAPTION)
+    crash, merge = (ax for ax in fig.axes if ax.get_visible())
+    (line,) = merge.lines[:1]
+    assert list(line.get_xdata()) == [0.0, 0.7854, 1.5708]  # in angle order, whatever the mapping's
+    assert list(line.get_ydata()) == [55.0, 94.0, 99.0]
+    (bars,) = [c for c in merge.collections if c.get_segments()]
+    assert [tuple(seg[:, 1]) for seg in bars.get_segments()] == [(52.0, 58.0), (92.0, 96.0), (98.0, 100.0)]
+    assert [ln.get_ydata()[0] for ln in merge.lines if ln.get_linestyle() == "--"] == [97.3]  # the rule across
+    assert not [ln for ln in crash.lines if ln.get_linestyle() == "--"]  # no reference for this metric
