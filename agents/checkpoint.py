@@ -31,6 +31,7 @@ rng {python, numpy, torch}, train (TrainConfig as a dict), config (Config.to_dic
 
 from __future__ import annotations
 
+import hashlib
 import random
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -263,10 +264,12 @@ class TrainedPolicy:
     overrides: ClassVar[Mapping[str, Any]] = {}
 
     def identity(self) -> dict[str, Any]:
-        # Which state of the run is evaluated: a run trained further must not resume its old evaluation.
+        # Which state of the run is evaluated: a run trained further must not resume its old evaluation. The
+        # file's content, not its path, says which weights: the same policy cloned elsewhere resumes its folder.
         updates = load_policy(self.checkpoint)[1]["counters"].get("updates")
+        sha = hashlib.sha256(Path(self.checkpoint).read_bytes()).hexdigest()
         return {"checkpoint": self.checkpoint, "greedy": self.greedy,
-                "trained_updates": None if updates is None else int(updates), "model_sha256": None}
+                "trained_updates": None if updates is None else int(updates), "model_sha256": sha}
 
     def load(self, env: ParallelEnv, worker: bool) -> Callable[[int], Callable[[Mapping[str, np.ndarray]], dict]]:
         if worker:

@@ -383,21 +383,30 @@ def _same_with_todays_defaults(saved: Path, meta: dict[str, Any]) -> bool:
 
 
 def _claim(out_dir: Path, meta: dict[str, Any], cfg: Config) -> None:
-    """Write evaluation.json and config.yaml, or check that an existing evaluation is the same one."""
+    """Write evaluation.json and config.yaml, or check that an existing evaluation is the same one (its
+    evaluation.json, or the summary.json that records the same, which results kept in a repository hold alone)."""
     path = out_dir / "evaluation.json"
-    if path.is_file() and _has_episodes(out_dir / "episodes.csv"):  # a folder without an episode is anyone's
+    record = path if path.is_file() else out_dir / "summary.json"
+    held = _has_episodes(out_dir / "episodes.csv")  # a folder without an episode is anyone's
+    if held and not record.is_file():
+        raise CosimError(f"{out_dir}: holds episodes (episodes.csv) but no evaluation.json or summary.json saying "
+                         "what they evaluated; resuming could mix two evaluations: move the folder away and evaluate "
+                         "into a new --out")
+    if held:
         try:
-            old = json.loads(path.read_text(encoding="utf-8"))
+            old = json.loads(record.read_text(encoding="utf-8"))
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             old = exc
         if not isinstance(old, dict):  # what the folder evaluated is unknown: resuming could mix two evaluations
-            raise CosimError(f"{path}: not a JSON object ({old}); it records what this folder evaluated: move the "
+            raise CosimError(f"{record}: not a JSON object ({old}); it records what this folder evaluated: move the "
                              "folder away and evaluate into a new --out")
-        # trained_updates, model_sha256: only where recorded (folders from before they were); the net's path only
-        # where its content was not (a folder cloned with its net elsewhere is the same evaluation).
+        # trained_updates, model_sha256, net_sha256: only where recorded (folders from before they were); the net's
+        # and the checkpoint's paths only where their content was not (a folder cloned with its net and policy
+        # elsewhere is the same evaluation).
         later = ("trained_updates", "model_sha256", "net_sha256")
-        compared = ("policy", "checkpoint", "greedy", *(() if "net_sha256" in old else ("net",)), *later)
-        differs = [k for k in compared if old.get(k) != meta[k] and (k in old or k not in later)]
+        paths = (*(() if old.get("net_sha256") else ("net",)), *(() if old.get("model_sha256") else ("checkpoint",)))
+        differs = [k for k in ("policy", "greedy", *paths, *later)
+                   if old.get(k) != meta[k] and (old.get(k) is not None or k not in later)]
         if differs:
             raise CosimError(f"{out_dir}: holds an evaluation with other {', '.join(differs)} "
                              f"({', '.join(f'{k}={old.get(k)!r}' for k in differs)}); choose another --out")

@@ -131,6 +131,35 @@ def test_a_folder_cloned_elsewhere_with_its_net_resumes(idle_eval: Path, tmp_pat
                  trajectories=0, plots=False)
 
 
+def test_a_trained_policys_folder_kept_as_results_keep_it_resumes_by_the_policys_content(tmp_path: Path) -> None:
+    # Results kept in a repository hold summary.json, episodes.csv and config.yaml (no evaluation.json), and name the
+    # checkpoint by the path it had where they were made. Cloned elsewhere with its policy, the folder resumes;
+    # other weights at that path are refused, and so are episodes that nothing says the origin of.
+    cfg = _cfg()
+    shape = (cfg.observation.frames, len(cfg.observation.channels), cfg.observation.height_px,
+             cfg.observation.width_px)
+    (tmp_path / "made").mkdir()
+    _tiny_checkpoint(tmp_path / "made" / "best.pt", shape)
+    evaluate(cfg, TrainedPolicy(str(tmp_path / "made" / "best.pt")), tmp_path / "made" / "ev", episodes=2, seed=5,
+             trajectories=0, plots=False)
+    clone = tmp_path / "clone"
+    clone.mkdir()
+    shutil.copy(tmp_path / "made" / "best.pt", clone / "best.pt")
+    (clone / "ev").mkdir()
+    for name in ("summary.json", "episodes.csv", "config.yaml"):
+        shutil.copy(tmp_path / "made" / "ev" / name, clone / "ev" / name)
+    evaluate(cfg, TrainedPolicy(str(clone / "best.pt")), clone / "ev", episodes=3, seed=5, trajectories=0,
+             plots=False)
+    assert [int(r["seed"]) for r in read_csv(clone / "ev" / "episodes.csv")] == [5, 6, 7]
+    _tiny_checkpoint(clone / "best.pt", shape)  # new random weights, the same counters
+    with pytest.raises(CosimError, match="other model_sha256"):
+        evaluate(cfg, TrainedPolicy(str(clone / "best.pt")), clone / "ev", episodes=4, seed=5, plots=False)
+    for name in ("summary.json", "evaluation.json"):
+        (clone / "ev" / name).unlink(missing_ok=True)
+    with pytest.raises(CosimError, match="holds episodes .* but no evaluation.json or summary.json"):
+        evaluate(cfg, TrainedPolicy(str(clone / "best.pt")), clone / "ev", episodes=4, seed=5, plots=False)
+
+
 def test_a_folder_written_before_a_config_key_existed_resumes(idle_eval: Path, tmp_path: Path) -> None:
     # A key added to the config since (here demand.exit, taken out of the folder's config.yaml and its hash) takes
     # the default that keeps the old behaviour: the folder holds the same evaluation and resumes; one whose
