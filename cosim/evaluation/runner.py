@@ -20,11 +20,13 @@ Contract:
   table, the figures and links to the videos), where the evaluation is called `evaluation_label` (the trained
   run's name, else the policy's), as in `cosim evaluate`'s table.
 - Resume: a second call with the same `out_dir` skips the seeds already in `episodes.csv`; a folder
-  holding an evaluation of another policy / checkpoint / net / config (`config_sha256`; the folder's
-  location, `sim.output_dir`, is not part of it) is refused. One writer per folder (`cosim.files.FolderLock`,
-  held from the first look at the folder to the summary): a second evaluation into it is refused while the
-  first lives. An evaluation that fails before its first episode leaves the folder as it found it, and a folder
-  that holds no finished episode is anyone's: nothing blocks the corrected rerun.
+  holding an evaluation of another policy / checkpoint / net / config is refused, each known by its content
+  where it was recorded (`model_sha256`, `net_sha256`, `config_sha256` without the folder's and the net's paths),
+  so a folder moved or cloned with its net and policy resumes; `summary.json` stands in for a missing
+  `evaluation.json`, and episodes that neither accounts for are refused. One writer per folder
+  (`cosim.files.FolderLock`, held from the first look at the folder to the summary): a second evaluation into it
+  is refused while the first lives. An evaluation that fails before its first episode leaves the folder as it
+  found it, and a folder that holds no finished episode is anyone's: nothing blocks the corrected rerun.
 - `workers > 1` runs episodes on `cosim.workers.WorkerPool` (libsumo runs one simulation per process); a
   worker that gives no step for `evaluate.step_timeout` seconds is replaced (logged), and an episode whose
   worker failed is played again by its replacement.
