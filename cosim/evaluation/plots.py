@@ -137,18 +137,27 @@ def bars(summaries: Mapping[str, Mapping[str, Mapping[str, float]]], path: Path,
     return save(fig, path)
 
 
+def _panel_grid(n: int, most_columns: int, panel: tuple[float, float], title_room: float
+                ) -> tuple[Figure, np.ndarray, int]:
+    """A figure of `n` panels, `most_columns` a row at most, each `panel` (width, height) inches, `title_room` more
+    inches for the title and caption: the figure, its `n` axes first (the rest of the last row hidden), and how many
+    columns it has (the legend goes right of the first row)."""
+    ncols = min(most_columns, n)
+    nrows = math.ceil(n / ncols)
+    fig = Figure(figsize=(panel[0] * ncols, panel[1] * nrows + title_room), layout="constrained")
+    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+    for ax in axes[n:]:
+        ax.set_visible(False)
+    return fig, axes, ncols
+
+
 def over_phi(tables: Mapping[float, Mapping[str, Mapping[str, float]]], metrics: Sequence[str], path: Path,
              references: Mapping[str, Mapping[str, Mapping[str, float]]] | None = None, caption: str = "",
              title: str = "Trained AVs over the SVO angle: mean with its 95% interval") -> Path:
     """The trade-off over the SVO angle: one panel per metric, the trained AVs' mean at each angle (`tables`: phi
     [rad] -> a summary's metrics) with its interval as error bars, joined by a line, and each of `references`
     (name -> metrics, e.g. a rule's) as a dashed line across."""
-    ncols = min(4, len(metrics))
-    nrows = math.ceil(len(metrics) / ncols)
-    fig = Figure(figsize=(3.4 * ncols, 3.0 * nrows + 0.8), layout="constrained")
-    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
-    for ax in axes[len(metrics):]:
-        ax.set_visible(False)
+    fig, axes, ncols = _panel_grid(len(metrics), 4, (3.4, 3.0), 0.8)
     phis = sorted(tables)
     for ax, metric in zip(axes, metrics, strict=False):
         stats = [tables[p].get(metric, {}) for p in phis]
@@ -256,12 +265,7 @@ def training_curves(groups: Mapping[str, Sequence[Path]], path: Path, window: in
               if any(n in cols for logs in data.values() for cols in logs for n in names)]
     if not panels:
         return None
-    ncols = min(2, len(panels))
-    nrows = math.ceil(len(panels) / ncols)
-    fig = Figure(figsize=(5.5 * ncols, 3.2 * nrows + 0.6), layout="constrained")
-    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
-    for ax in axes[len(panels):]:
-        ax.set_visible(False)
+    fig, axes, ncols = _panel_grid(len(panels), 2, (5.5, 3.2), 0.6)
     smallest = min(len(next(iter(cols.values()))) for logs in data.values() for cols in logs)
     window = min(window, max(1, smallest // 5))  # a short log gets a short window, so its curve is more than a point
     handles = []
