@@ -31,7 +31,6 @@ rng {python, numpy, torch}, train (TrainConfig as a dict), config (Config.to_dic
 
 from __future__ import annotations
 
-import hashlib
 import random
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -45,7 +44,7 @@ from pettingzoo import ParallelEnv
 from agents.model import ActorCritic
 from agents.validation import describe
 from cosim.errors import CosimError
-from cosim.files import atomic_path
+from cosim.files import atomic_path, file_sha256
 
 FORMAT, VERSION = "cosim-ma-a2c", 2
 POLICY_FORMAT = "cosim-policy"
@@ -267,7 +266,7 @@ class TrainedPolicy:
         # Which state of the run is evaluated: a run trained further must not resume its old evaluation. The
         # file's content, not its path, says which weights: the same policy cloned elsewhere resumes its folder.
         updates = load_policy(self.checkpoint)[1]["counters"].get("updates")
-        sha = hashlib.sha256(Path(self.checkpoint).read_bytes()).hexdigest()
+        sha = file_sha256(self.checkpoint)
         return {"checkpoint": self.checkpoint, "greedy": self.greedy,
                 "trained_updates": None if updates is None else int(updates), "model_sha256": sha}
 

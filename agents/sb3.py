@@ -14,7 +14,6 @@ as an actor with `ActorCritic.act`'s signature, and a file that is no SB3 model 
 from __future__ import annotations
 
 import functools
-import hashlib
 import zipfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -37,6 +36,7 @@ from agents.config import TrainConfig
 from agents.model import VelocityMapEncoder
 from cosim.config import EVAL_SEED_START, Config
 from cosim.errors import ConfigError
+from cosim.files import file_sha256
 
 EPISODES_PER_COPY = 1_000_000  # episode seeds set aside for each env copy of a run
 
@@ -157,7 +157,7 @@ class Sb3Policy:
 
     def identity(self) -> dict[str, Any]:
         # An SB3 model has no update counter: its content tells a retrained model from the evaluated one.
-        sha = hashlib.sha256(Path(self.model).read_bytes()).hexdigest()
+        sha = file_sha256(self.model)
         return {"checkpoint": self.model, "greedy": self.greedy, "trained_updates": None, "model_sha256": sha}
 
     def load(self, env: ParallelEnv, worker: bool) -> Callable[[int], Callable[[Mapping[str, np.ndarray]], dict]]:

@@ -15,6 +15,7 @@ processes writing one file leave, or a cell of an `ints` column that is no integ
 (atomic), `AppendCsv`, and `column(rows, name)`, a column as floats (booleans as 0/1, empty or unparsable cells as NaN).
 `FolderLock(folder, command)`: one writer per results folder (a lock the kernel drops when its owner dies).
 `FolderState.capture(folder)` / `restore()`: a results folder put back as a command found it.
+`file_sha256(path)`: a file's identity by content (a net's, a policy's), wherever it lies.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from __future__ import annotations
 import csv
 import fcntl
 import gzip
+import hashlib
 import io
 import json
 import math
@@ -122,6 +124,16 @@ def stale_temporaries(folder: Path, name: str) -> list[Path]:
     """Temporary files of `atomic_path(folder / name)` left by a write that was killed."""
     stem, suffix = Path(name).stem, Path(name).suffix
     return sorted(p for p in folder.glob(f".{stem}.*{suffix}") if p.is_file())
+
+
+def file_sha256(path: str | Path) -> str:
+    """sha256 of a file's bytes, read in blocks: what identifies a net or a policy file wherever it lies (two runs
+    on nets with the same hash ran on the same net)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def read_csv(path: Path, ints: Sequence[str] = ()) -> list[dict[str, str]]:

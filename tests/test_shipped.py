@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from cosim.config import load_config
-from cosim.sumo.net import file_sha256
+from cosim.files import file_sha256
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = sorted({p.parent for top in ("policies", "results") for p in (ROOT / top).rglob("*.pt")})

@@ -14,7 +14,6 @@ junction-internal and foreign edges). Problems raise `NetError` naming the file.
 from __future__ import annotations
 
 import bisect
-import hashlib
 from dataclasses import dataclass
 from functools import cached_property
 from itertools import accumulate
@@ -23,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from cosim.files import file_sha256
 from cosim.sumo.netdesc import NetDescription, load_net_description
 from cosim.sumo.roadnet import RoadNet, load_roadnet
 from cosim.sumo.snapshot import Snapshot
@@ -187,15 +187,6 @@ class Chainage:
         return out
 
 
-
-
-def file_sha256(path: str | Path) -> str:
-    """sha256 of a file's bytes (a net's identity: two runs on nets with the same hash ran on the same net)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def net_summary(net: Net) -> dict[str, Any]:
