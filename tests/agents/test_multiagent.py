@@ -221,6 +221,23 @@ def test_act_batches_by_network_and_reports_logp_and_values() -> None:
     torch.testing.assert_close(policy.value(obs, agents, update=0), values)
 
 
+def test_a_batch_gives_back_the_observations_written_into_it_and_the_network_reads_them_as_written() -> None:
+    # The batch stores observations channels last (its doc): what goes in as the env's (F, C, H, W) must come out
+    # the same, and the network's outputs on it must be those on the env's layout.
+    g = torch.Generator().manual_seed(3)
+    b = Batch.allocate(2, 2, 3, OBS, torch.uint8, 5)
+    written = torch.randint(0, 256, (3, *OBS), dtype=torch.uint8, generator=g)
+    b.obs[1, 0] = torch.from_numpy(written.numpy())
+    t_, w_, i_ = torch.tensor([1, 1]), torch.tensor([0, 0]), torch.tensor([2, 0])
+    read = b.obs[t_, w_, i_]
+    assert torch.equal(read, written[[2, 0]])
+    torch.manual_seed(0)
+    net = MultiAgentPolicy(3, OBS, 5, small_tc()).nets[0]
+    with torch.no_grad():
+        for got, want in zip(net(read), net(read.contiguous()), strict=True):
+            torch.testing.assert_close(got, want)
+
+
 def test_schedules_set_the_learning_rate_and_entropy_weight() -> None:
     tc = small_tc(lr=0.01, lr_final=0.001, entropy_coef=0.02, entropy_final=0.0)
     policy = MultiAgentPolicy(1, OBS, 5, tc)
