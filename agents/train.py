@@ -68,7 +68,16 @@ from agents.config import TrainConfig, check_device, train_config
 from agents.logs import RunLogger, cut_logs, log_gaps
 from agents.multiagent import Batch, MultiAgentPolicy
 from agents.rollout import Backend
-from agents.validation import better, constant_action, describe, summarize, validate, validation_seeds
+from agents.validation import (
+    MOVING_SHARE,
+    better,
+    constant_action,
+    describe,
+    moving_threshold,
+    summarize,
+    validate,
+    validation_seeds,
+)
 from cosim.config import EVAL_SEED_START, Config, SafetyConfig, read_yaml
 from cosim.errors import ConfigError, EpisodeError, NetError
 from cosim.files import FolderLock, FolderState, atomic_write_text, stale_temporaries
@@ -360,8 +369,10 @@ class _Run:
                 _check_net_unchanged(out_dir / NET_RECORD, where)
             if where is not None and start is not None:
                 where["init_from"] = start[1]["path"]
+            moving = (moving_threshold(setting.demand.mainline_total + setting.demand.ramp_vph)
+                      if setting is not None and setting.demand is not None else None)
             return cls(cfg, tc, out_dir, payload, env_factory or _default_env_factory(cfg), changes, progress,
-                       backend, lock, before, where, start)
+                       backend, lock, before, where, start, moving)
         except BaseException:
             lock.release()
             raise
@@ -370,8 +381,10 @@ class _Run:
                  env_factory: EnvFactory, changes: dict[str, tuple[Any, Any]] | None = None,
                  progress: bool | None = None, backend: Backend | None = None, lock: FolderLock | None = None,
                  before: FolderState | None = None, where: dict[str, Any] | None = None,
-                 start: tuple[dict[str, Any], dict[str, Any]] | None = None) -> None:
+                 start: tuple[dict[str, Any], dict[str, Any]] | None = None,
+                 moving_vph: float | None = None) -> None:
         self.cfg, self.tc, self.out_dir = cfg, tc, out_dir
+        self.moving_vph = moving_vph  # under demand: the throughput best.pt asks first (agents.validation.better)
         self.before = before or FolderState.capture(out_dir)
         self.failed = False  # a CosimError stopped the run (set by `train`)
         self.checkpointed: dict[str, int] | None = None  # the counters of this command's last checkpoint
@@ -571,7 +584,7 @@ class _Run:
         spent = time.perf_counter() - t0
         self.train_s += spent  # the budget is wall-clock time, validation's included
         c["validated"] = c["episodes"]
-        best = better(fig, self.best)
+        best = better(fig, self.best, self.moving_vph)
         row = {"update": c["updates"], "episodes": c["episodes"], "samples": c["samples"], "train_s": self.train_s,
                "validation_s": spent, **fig, "best": int(best)}
         self.logger.validation(row)
@@ -583,6 +596,10 @@ class _Run:
         log.info("validation at %s %d (%d greedy %s, %.0f s): %s%s", what[:-1], c["episodes"],
                  fig["episodes_validated"], what, spent, describe(fig),
                  f"; best so far, kept as {BEST_NAME}" if best else "")
+        if self.moving_vph is not None and fig["throughput"] < self.moving_vph:
+            log.warning("the greedy policy carries %.0f veh/h, under %.0f%% of the flow offered (%.0f veh/h): it does "
+                        "not keep traffic moving, and best.pt prefers any validation that does", fig["throughput"],
+                        100 * MOVING_SHARE, self.moving_vph / MOVING_SHARE)
         constant = constant_action(fig)
         if constant is not None:
             log.warning("the greedy policy took action %d at %.1f%% of its validation decisions: the validation "

@@ -10,7 +10,16 @@ import torch
 
 from agents.checkpoint import BEST_NAME, POLICY_NAME, TrainedPolicy, find_checkpoint, load_policy
 from agents.train import train
-from agents.validation import FIGURES, better, constant_action, meets_criterion, summarize, validation_seeds
+from agents.validation import (
+    FIGURES,
+    MOVING_SHARE,
+    better,
+    constant_action,
+    meets_criterion,
+    moving_threshold,
+    summarize,
+    validation_seeds,
+)
 from cosim.config import EVAL_SEED_START, SEED_MAX, VALIDATION_SEED_START, load_config
 from cosim.evaluation.runner import evaluate
 from cosim.files import read_csv
@@ -43,6 +52,19 @@ def test_best_is_the_lowest_crash_upper_bound_then_the_highest_return() -> None:
     runs = {"collisions_high": 0.0, "return": 5.0}  # under demand: collisions per window, then the return
     assert better({"collisions_high": 0.0, "return": 6.0}, runs) and not better({"collisions_high": 1.0,
                                                                                   "return": 50.0}, runs)
+
+
+def test_under_demand_best_asks_first_that_traffic_keeps_moving() -> None:
+    moving = moving_threshold(4000.0)
+    assert moving == MOVING_SHARE * 4000.0
+    still = {"collisions_high": 0.0, "throughput": 950.0, "return": 90.0}  # the mainline held still, no collision
+    driving = {"collisions_high": 20.0, "throughput": 3900.0, "return": 30.0}
+    assert better(driving, still, moving) and not better(still, driving, moving)
+    # both moving, or both not: collisions, then the return, as without the threshold
+    assert better({"collisions_high": 5.0, "throughput": 3100.0, "return": 1.0}, driving, moving)
+    assert not better({"collisions_high": 0.0, "throughput": 1200.0, "return": 50.0}, driving, moving)
+    assert better({"collisions_high": 0.0, "throughput": 1200.0, "return": 95.0}, still, moving)
+    assert better(still, driving)  # without a threshold (episodes, or a caller that has none): collisions first
 
 
 def test_the_criterion_asks_safety_of_every_policy_and_merges_of_altruistic_ones() -> None:
