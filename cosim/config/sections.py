@@ -525,6 +525,11 @@ class RewardConfig(_Section):
         0.0, description="SVO angle, one for all AVs or one per AV: 0 egoistic, pi/4 altruistic, pi/2 fully [rad]")
     weights: RewardWeights = Field(
         default_factory=RewardWeights, description="the utility terms' weights; unlisted terms keep their default")
+    # The paper sums the others' utilities: with a fixed cast of vehicles (one merge) that is the same as their mean
+    # up to a scale. In traffic the cast around an AV changes with what it does: a sum pays for every vehicle it
+    # holds in view, a queue included, which the mean does not.
+    social: Literal["sum", "mean"] = Field(
+        "sum", description="how the others' utilities make the social part: sum (the paper's Eq. 3) or their mean")
 
 
 class TrainConfig(_Section):

@@ -175,7 +175,8 @@ class DemandEnv(SumoEnv):
             have = slots >= 0
             full[slots[have]] = rows[have]
             observed[have] = self.mapper.observed(snap, full)[slots[have]]
-        reward, _, _ = svo_rewards(utility, observed, rows, -1, np.full(len(acting), self._phi))
+        reward, _, _ = svo_rewards(utility, observed, rows, -1, np.full(len(acting), self._phi),
+                                   mean=self.cfg.reward.social == "mean")
         return {a: float(r) for a, r in zip(acting, reward, strict=True)}, {}
 
     # -- agents and their observation slots ---------------------------------------------------------

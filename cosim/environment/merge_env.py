@@ -176,7 +176,8 @@ class MergeEnv(SumoEnv):
         weighted = weighted_utility(raw, self.cfg.reward)
         utility = sum(weighted.values())
         observed = self.mapper.observed(snap, rows)
-        reward, ego, social = svo_rewards(utility, observed, rows, merger_row, self._phis)
+        reward, ego, social = svo_rewards(utility, observed, rows, merger_row, self._phis,
+                                          mean=self.cfg.reward.social == "mean")
         safe = np.maximum(rows, 0)
         terms = {k: np.where(present, v[safe], 0.0) if len(snap) else np.zeros(len(rows))
                  for k, v in weighted.items()}

@@ -12,12 +12,13 @@ Contract:
   `accel` (-|speed change| / (AV accel * period), every vehicle, so forcing humans to brake costs the social
   part), `lane_change` and `invalid_action` (-1, AVs only), `collision` (-1 if crashed), `merge` (+1 for the
   merging vehicle on the step it merges), `headway` (min(0, ln(gap / (HEADWAY_TIME x speed))), AVs only: MARL_CAVs'
-  headway cost; weight 0 by default, the paper's reward has none).
+  headway cost; weight 0 unless set, the paper's reward has none; `configs/default.yaml` sets 1).
 - `av_gaps(snap, weights)` gives a step's AV gaps for `headway`; `utility_terms(step)` evaluates every term;
   `weighted_utility(terms, cfg)` weighs them by `cfg.weights`.
-- `svo_rewards(u, observed, ego_rows, merger_row, phis)` is the paper's Eq. (3):
+- `svo_rewards(u, observed, ego_rows, merger_row, phis, mean=False)` is the paper's Eq. (3):
   R_i = cos(phi_i) u_i + sin(phi_i) (sum of u over the others i observes + u_M), where, as in the paper's
-  sum over k in V~ ∪ {M}, the merging vehicle counts whether observed or not.
+  sum over k in V~ ∪ {M}, the merging vehicle counts whether observed or not; `mean` (`reward.social: mean`)
+  takes the mean over those others instead of the sum (0 where there are none).
 """
 
 from __future__ import annotations
@@ -131,7 +132,7 @@ def weighted_utility(terms: dict[str, np.ndarray], cfg: RewardConfig) -> dict[st
 
 
 def svo_rewards(utility: np.ndarray, observed: np.ndarray, ego_rows: np.ndarray, merger_row: int,
-                phis: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                phis: np.ndarray, mean: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """utility (V,); observed (N, V) bool (ego excluded); ego_rows (N,) with -1 for absent agents;
     merger_row -1 if the merging vehicle is gone. Returns (reward, ego part, social part), each (N,);
     absent agents get 0."""
@@ -142,6 +143,8 @@ def svo_rewards(utility: np.ndarray, observed: np.ndarray, ego_rows: np.ndarray,
     others[np.arange(len(ego_rows))[present], ego_rows[present]] = False  # never count oneself
     others[~present] = False
     social = others.astype(np.float64) @ utility
+    if mean:
+        social = social / np.maximum(others.sum(axis=1), 1)
     ego = np.where(present, utility[np.maximum(ego_rows, 0)], 0.0) if len(utility) else np.zeros(len(ego_rows))
     reward = np.cos(phis) * ego + np.sin(phis) * social
     return reward, ego, social

@@ -301,6 +301,23 @@ def test_time_limit_truncates() -> None:
     assert all(trunc[a] != term[a] for a in trunc)
 
 
+def test_reward_social_mean_divides_the_social_part_by_the_vehicles_counted() -> None:
+    social = {}
+    for how in ("sum", "mean"):
+        env = cosim.parallel_env(FREE, {**SMALL, "reward.phi": math.pi / 4, "reward.social": how})
+        try:
+            env.reset(seed=0)
+            _, _, _, _, info = env.step({a: int(Action.ACCELERATE) for a in env.agents})
+        finally:
+            env.close()
+        social[how] = {a: i["social_utility"] for a, i in info.items()}
+    assert social["sum"].keys() == social["mean"].keys()
+    for a, mean in social["mean"].items():
+        assert mean != 0.0  # the merging vehicle at least is counted
+        count = social["sum"][a] / mean
+        assert count >= 1.0 and count == pytest.approx(round(count))
+
+
 def test_reward_is_the_svo_combination_of_reported_utilities() -> None:
     for phi in (0.0, math.pi / 4, math.pi / 2):
         env = cosim.parallel_env(FREE, {**SMALL, "reward.phi": phi})

@@ -81,6 +81,27 @@ def test_absent_agent_and_gone_merger() -> None:
     assert social[0] == pytest.approx(0.8 + 0.4)  # no merger term once it is gone
 
 
+def test_the_social_part_as_a_mean_does_not_grow_with_the_vehicles_counted() -> None:
+    obs = observed()
+    rows = SCENE.rows_of(["av_0", "av_1"])
+    phis = np.full(2, math.pi / 4)
+    _, _, summed = svo_rewards(UTILITY, obs, rows, merger_row=4, phis=phis)
+    reward, ego, social = svo_rewards(UTILITY, obs, rows, merger_row=4, phis=phis, mean=True)
+    assert social[0] == pytest.approx((0.8 + 0.4 - 1.0) / 3)  # av_1, hv_0 and the merger
+    assert reward[0] == pytest.approx(math.cos(math.pi / 4) * 0.5 + math.sin(math.pi / 4) * social[0])
+    counted = obs.sum(axis=1) + ~obs[:, 4]  # the merger counts whether observed or not
+    np.testing.assert_allclose(social * counted, summed)
+    # A second observed vehicle of the same utility leaves the mean as it was and adds to the sum.
+    wider = np.concatenate([obs, obs[:, 2:3]], axis=1)
+    u = np.append(UTILITY, UTILITY[2])
+    scene_rows = np.array([0, 1])
+    assert svo_rewards(u, wider, scene_rows, 4, phis, mean=True)[2][0] == pytest.approx(
+        (0.8 + 0.4 + 0.4 - 1.0) / 4)
+    assert svo_rewards(u, wider, scene_rows, 4, phis)[2][0] == pytest.approx(0.8 + 0.4 + 0.4 - 1.0)
+    alone = svo_rewards(UTILITY, np.zeros_like(obs), rows, -1, phis, mean=True)[2]
+    assert alone.tolist() == [0.0, 0.0]  # nobody else: no social part, not a division by zero
+
+
 def test_utility_terms_and_weights() -> None:
     terms = utility_terms(StepChange(
         progress=np.array([33.0, 16.5, 0.0]), speed_change=np.array([0.0, -3.0, 1.5]),
