@@ -323,9 +323,9 @@ def test_reward_weights_are_a_typed_section() -> None:
     weights = defs["RewardWeights"]["properties"]
     assert weights["merge"]["default"] == 10.0 and weights["collision"]["minimum"] == 0
     cfg = load_config(ROOT / "configs" / "default.yaml")
-    assert (cfg.reward.weights.merge, cfg.reward.weights.speed) == (50.0, 1.0)
+    assert (cfg.reward.weights.merge, cfg.reward.weights.speed, cfg.reward.weights.headway) == (50.0, 1.0, 1.0)
     # Only the weights given are written out, as a run's config.yaml always held them, so saved runs compare equal.
-    assert cfg.to_dict()["reward"]["weights"] == {"merge": 50.0}
+    assert cfg.to_dict()["reward"]["weights"] == {"merge": 50.0, "headway": 1.0}
     assert load_config(cfg.to_dict()).reward == cfg.reward
     with pytest.raises(ConfigError) as caught:
         load_config(None, {"reward.weights": {"merge": -1, "speeed": 1}})
