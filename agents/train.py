@@ -369,10 +369,10 @@ class _Run:
                 _check_net_unchanged(out_dir / NET_RECORD, where)
             if where is not None and start is not None:
                 where["init_from"] = start[1]["path"]
-            moving = (moving_threshold(setting.demand.mainline_total + setting.demand.ramp_vph)
-                      if setting is not None and setting.demand is not None else None)
+            offered = (setting.demand.mainline_total + setting.demand.ramp_vph
+                       if setting is not None and setting.demand is not None else None)
             return cls(cfg, tc, out_dir, payload, env_factory or _default_env_factory(cfg), changes, progress,
-                       backend, lock, before, where, start, moving)
+                       backend, lock, before, where, start, offered)
         except BaseException:
             lock.release()
             raise
@@ -382,9 +382,11 @@ class _Run:
                  progress: bool | None = None, backend: Backend | None = None, lock: FolderLock | None = None,
                  before: FolderState | None = None, where: dict[str, Any] | None = None,
                  start: tuple[dict[str, Any], dict[str, Any]] | None = None,
-                 moving_vph: float | None = None) -> None:
+                 offered_vph: float | None = None) -> None:
         self.cfg, self.tc, self.out_dir = cfg, tc, out_dir
-        self.moving_vph = moving_vph  # under demand: the throughput best.pt asks first (agents.validation.better)
+        # Under demand: the flow offered, and the throughput best.pt asks first (agents.validation.better).
+        self.offered_vph = offered_vph
+        self.moving_vph = None if offered_vph is None else moving_threshold(offered_vph)
         self.before = before or FolderState.capture(out_dir)
         self.failed = False  # a CosimError stopped the run (set by `train`)
         self.checkpointed: dict[str, int] | None = None  # the counters of this command's last checkpoint
@@ -599,7 +601,7 @@ class _Run:
         if self.moving_vph is not None and fig["throughput"] < self.moving_vph:
             log.warning("the greedy policy carries %.0f veh/h, under %.0f%% of the flow offered (%.0f veh/h): it does "
                         "not keep traffic moving, and best.pt prefers any validation that does", fig["throughput"],
-                        100 * MOVING_SHARE, self.moving_vph / MOVING_SHARE)
+                        100 * MOVING_SHARE, self.offered_vph)
         constant = constant_action(fig)
         if constant is not None:
             log.warning("the greedy policy took action %d at %.1f%% of its validation decisions: the validation "
