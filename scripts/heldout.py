@@ -6,7 +6,8 @@ polite and the impatient merging vehicle, with and without the safety layer, bes
 Each (player, merging vehicle, shield) is one `cosim evaluate` into `OUT/<merger>_<shield>/<player>/` on the same
 evaluation seeds (10,000,000 on: disjoint from training and validation), resumable: a second call plays only the
 episodes missing. A run plays its `best.pt` (its best validation), as `cosim evaluate --run` does, on its own
-config with only the merging vehicle (`configs/impatient.yaml`'s `merger:` section) and the shield changed.
+config with only the merging vehicle (the run's own `merger:`, or `configs/impatient.yaml`'s, alone: a run trained on
+a mix of merging drivers, `configs/mixed_merger.yaml`, meets each in turn) and the shield changed.
 Writes `OUT/heldout.md` (per seed, pooled over the seeds of each angle, the claims' checks, the command, the wall
 time) and `OUT/heldout.json`. Rates carry Wilson intervals, per-episode measures t-intervals.
 """
@@ -43,11 +44,14 @@ CRASH_MAX, CRASH_HIGH_MAX = 2.0, 4.0  # [%] the science issue's bar: pooled cras
 
 
 def merger_overrides(name: str) -> list[str]:
-    """The `--set` lines that give a run's config the merging vehicle `name` (polite: the run's own)."""
+    """The `--set` lines that give a run's config the merging vehicle `name` alone (polite: the run's own `merger`),
+    whatever mix of merging drivers it trained on (`scenario.merger_alt_share`)."""
+    alone = ["scenario.merger_alt_share=0"]
     if name == "polite":
-        return []
+        return alone
     merger = yaml.safe_load(IMPATIENT.read_text())["merger"]
-    return [f"merger.{key}={yaml.safe_dump(value, default_flow_style=True).strip()}" for key, value in merger.items()]
+    return [*alone, *(f"merger.{key}={yaml.safe_dump(value, default_flow_style=True).strip()}"
+                      for key, value in merger.items())]
 
 
 def main() -> None:

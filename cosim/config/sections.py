@@ -280,6 +280,10 @@ class ScenarioConfig(_Section):
     merger_lane: Int | None = Field(
         None, ge=0, description="the ramp lane the merging vehicle starts in (0 = rightmost); null: the leftmost, "
         "the one nearest a highway it joins from the right [-]")
+    merger_alt_share: Number = Field(
+        0.0, ge=0, le=1, description="share of the merging vehicles (per episode; under demand per ramp vehicle) "
+        "drawn to drive the `merger_alt` type instead of `merger`, e.g. polite and impatient merging drivers in one "
+        "training run [-]")
     inflow: Number = Field(0.0, ge=0, description="further HVs entering the highway start during the episode [veh/h]")
     stream_speed_factor: NonNegativeSpan | None = Field(
         (0.69, 0.81), description="the stream's speed as a factor of the speed limit of its lane on the merge edge; "
@@ -655,6 +659,10 @@ class Config(_Section):
     # A merger section given in a file starts from DriverConfig's defaults, not from these.
     merger: DriverConfig = Field(default_factory=lambda: DriverConfig(
         max_speed_factor=0.9, tau_range=(1.0, 1.0), sigma_range=(0.0, 0.0), speed_factor=(1.0, 1.0), lc_params={}))
+    # Trained on one merging driver, AVs meet only that one; a second type, drawn per merging vehicle with
+    # scenario.merger_alt_share, lets one run train on both (configs/mixed_merger.yaml).
+    merger_alt: DriverConfig | None = Field(
+        None, description="a second merging vehicle type (starts from DriverConfig's defaults, as merger: does)")
     av: AVConfig = Field(default_factory=AVConfig)
     observation: ObservationConfig = Field(default_factory=ObservationConfig)
     reward: RewardConfig = Field(default_factory=RewardConfig)
@@ -662,6 +670,18 @@ class Config(_Section):
     train: TrainConfig = Field(default_factory=TrainConfig)
     evaluate: EvaluateConfig = Field(default_factory=EvaluateConfig)
     source: StrictStr | None = Field(None, exclude=True, description="the YAML file this came from, if any")
+
+    @model_validator(mode="after")
+    def _alt_merger_given(self) -> Self:
+        if self.scenario.merger_alt_share > 0 and self.merger_alt is None:
+            raise _problem(f"{self.scenario.merger_alt_share} of the merging vehicles would drive the merger_alt "
+                           "type, which is not given: add a merger_alt section (a vehicle type, as merger:) or set "
+                           "the share to 0", "scenario.merger_alt_share")
+        return self
+
+    def merger_driver(self, alt: bool) -> DriverConfig:
+        """The merging vehicle's type: `merger_alt` where it was drawn (`alt`), else `merger`."""
+        return self.merger_alt if alt and self.merger_alt is not None else self.merger
 
     @model_validator(mode="after")
     def _one_angle_per_av(self) -> Self:

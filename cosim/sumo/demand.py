@@ -131,6 +131,7 @@ class Arrival:
     tau: float = 1.0  # [s] (humans)
     sigma: float = 0.0
     speed_factor: float = 1.0
+    alt: bool = False  # a ramp vehicle of the config's merger_alt type (scenario.merger_alt_share)
 
 
 def _times(rng: np.random.Generator, vph: float, horizon: float) -> np.ndarray:
@@ -157,7 +158,7 @@ def plan_demand(cfg: Config, net: Net, dem: Demand, seed: int) -> list[Arrival]:
         is_av[rng.choice(len(mainline), size=min(dem.av_count, len(mainline)), replace=False)] = True
     else:
         is_av = rng.random(len(mainline)) < dem.av_penetration
-    hv, merger = cfg.hv, cfg.merger
+    hv, share = cfg.hv, cfg.scenario.merger_alt_share
     out: list[Arrival] = []
     n_av = n_hv = 0
     for (t, ln), av in zip(mainline, is_av, strict=True):
@@ -167,8 +168,11 @@ def plan_demand(cfg: Config, net: Net, dem: Demand, seed: int) -> list[Arrival]:
         else:
             out.append(Arrival(f"hv_{n_hv}", KIND_HV, "hw_0", ln, t, *_driver(rng, hv)))
             n_hv += 1
-    out += [Arrival(f"{MERGER_ID}_{k}", KIND_MERGER, "ramp_0", lane, float(t), *_driver(rng, merger))
-            for k, t in enumerate(ramp)]
+    # Drawn only where asked, so that every other config keeps its windows' random streams.
+    alt = rng.random(len(ramp)) < share if share > 0 else np.zeros(len(ramp), bool)
+    out += [Arrival(f"{MERGER_ID}_{k}", KIND_MERGER, "ramp_0", lane, float(t),
+                    *_driver(rng, cfg.merger_driver(bool(a))), alt=bool(a))
+            for k, (t, a) in enumerate(zip(ramp, alt, strict=True))]
     return sorted(out, key=lambda a: a.depart)
 
 
@@ -182,7 +186,7 @@ def write_demand(arrivals: list[Arrival], cfg: Config, desc: NetDescription, pat
         vtype = "av"
         if a.kind != KIND_AV:
             vtype = f"t_{a.vid}"
-            parts.append(vtype_xml(vtype, cfg.merger if a.kind == KIND_MERGER else cfg.hv, a.tau, a.sigma,
+            parts.append(vtype_xml(vtype, cfg.merger_driver(a.alt) if a.kind == KIND_MERGER else cfg.hv, a.tau, a.sigma,
                                    a.speed_factor))
         # departSpeed desired: at the driver's own free speed, as traffic arriving from upstream would be, or not yet
         # (the insertion backlog: delay). "max" let a vehicle in at whatever speed was safe behind the last one

@@ -57,8 +57,11 @@ def resolve(cfg: Config, net: Net) -> Resolved:
     av = cfg.av.model_copy(update={
         "max_speed": factor_or(cfg.av.max_speed, cfg.av.max_speed_factor, limit), "max_speed_factor": None,
         "speed_step": factor_or(cfg.av.speed_step, cfg.av.speed_step_factor, limit), "speed_step_factor": None})
-    hv, merger = (d.model_copy(update={"max_speed": factor_or(d.max_speed, d.max_speed_factor, limit),
-                                       "max_speed_factor": None}) for d in (cfg.hv, cfg.merger))
+    hv, merger, merger_alt = (
+        None if d is None else d.model_copy(update={"max_speed": factor_or(d.max_speed, d.max_speed_factor, limit),
+                                                    "max_speed_factor": None})
+        for d in (cfg.hv, cfg.merger, cfg.merger_alt))
+    mergers = [d for d in (merger, merger_alt if sc.merger_alt_share > 0 else None) if d is not None]
     obs = cfg.observation.model_copy(update={
         "speed_scale": factor_or(cfg.observation.speed_scale, cfg.observation.speed_scale_factor, limit),
         "speed_scale_factor": None})
@@ -71,7 +74,7 @@ def resolve(cfg: Config, net: Net) -> Resolved:
     up["av_speed_offset"] = factor_or(sc.av_speed_offset, sc.av_speed_offset_factor, limit)
     up["stream_head"] = factor_or(sc.stream_head, sc.stream_head_share, net.accel_length)
     if sc.merger_speed is not None:
-        top = min(net.ramp_speed_limit * min(cfg.merger.speed_factor), merger.max_speed)
+        top = min(min(net.ramp_speed_limit * min(d.speed_factor), d.max_speed) for d in mergers)
         if sc.merger_speed[1] > top:
             capped = (min(sc.merger_speed[0], top), top)
             notes.append(f"scenario.merger_speed: {list(sc.merger_speed)} m/s is above what the merging vehicle may "
@@ -87,7 +90,8 @@ def resolve(cfg: Config, net: Net) -> Resolved:
                      "place_share", "hv_density"):
         up[relative] = None
     scenario = sc.model_copy(update=up)
-    config = cfg.model_copy(update={"av": av, "hv": hv, "merger": merger, "observation": obs, "scenario": scenario})
+    config = cfg.model_copy(update={"av": av, "hv": hv, "merger": merger, "merger_alt": merger_alt,
+                                    "observation": obs, "scenario": scenario})
     return Resolved(config, tuple(notes))
 
 
@@ -182,7 +186,16 @@ def driver_lines(cfg: Config) -> list[str]:
     """How the AVs and HVs drive, in words: the part of `scenario_lines` that a demand run shares."""
     return [f"AVs: top speed {cfg.av.max_speed:.1f} m/s, speed step {cfg.av.speed_step:.2f} m/s; observation speed "
             f"scale {cfg.observation.speed_scale:.1f} m/s; HVs' top speed {cfg.hv.max_speed:.1f} m/s",
-            SHIELD_LINES[cfg.av.shield]]
+            *merger_lines(cfg), SHIELD_LINES[cfg.av.shield]]
+
+
+def merger_lines(cfg: Config) -> list[str]:
+    """The merging drivers' mix, where there is one."""
+    share, alt = cfg.scenario.merger_alt_share, cfg.merger_alt
+    if share <= 0 or alt is None:
+        return []
+    return [f"merging vehicles: {1 - share:.0%} merger ({cfg.merger.lane_change_model} {dict(cfg.merger.lc_params)}), "
+            f"{share:.0%} merger_alt ({alt.lane_change_model} {dict(alt.lc_params)}), drawn per vehicle"]
 
 
 # What each `av.shield` means for the AVs the env drives, in the reports' words.

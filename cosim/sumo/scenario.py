@@ -84,6 +84,7 @@ class Spawn:
     sigma: float = 0.0  # [-] (HVs)
     speed_factor: float = 1.0  # [-] desired speed / speed limit (HVs)
     max_speed: float | None = None  # [m/s] caps the desired speed (a stream's first vehicle); None: the driver's
+    alt: bool = False  # the merging vehicle drives the config's merger_alt type (scenario.merger_alt_share)
 
 
 def route_ids(desc: NetDescription) -> dict[str, tuple[str, ...]]:
@@ -186,11 +187,13 @@ class _Planner:
             k, pos, left = net.ramp_position(before)
         lanes = self.road.num_lanes(ramp[k])
         lane = lanes - 1 if sc.merger_lane is None else min(sc.merger_lane, lanes - 1)
-        m = self.cfg.merger
+        # Drawn only where asked, so that every other config keeps its episodes' random streams.
+        alt = sc.merger_alt_share > 0 and bool(self.rng.random() < sc.merger_alt_share)
+        m = self.cfg.merger_driver(alt)
         tau, sigma, factor = self.uniform(m.tau_range), self.uniform(m.sigma_range), self.uniform(m.speed_factor)
         # SUMO refuses a departure above the lane's limit x the driver's speed factor (or its top speed).
         speed = min(speed, self.road.lane(ramp[k], lane).speed * factor, m.max_speed)
-        self.plan.append(Spawn(MERGER_ID, KIND_MERGER, f"ramp_{k}", lane, pos, speed, tau, sigma, factor))
+        self.plan.append(Spawn(MERGER_ID, KIND_MERGER, f"ramp_{k}", lane, pos, speed, tau, sigma, factor, alt=alt))
         return left / max(speed, 0.1)
 
 
@@ -309,7 +312,7 @@ def write_episode(plan: Plan, cfg: Config, desc: NetDescription, path: Path) -> 
             vtype = "av"
         else:
             vtype = f"t_{sp.vid}"
-            drv = cfg.merger if sp.kind == KIND_MERGER else hv
+            drv = cfg.merger_driver(sp.alt) if sp.kind == KIND_MERGER else hv
             parts.append(vtype_xml(vtype, drv, sp.tau, sp.sigma, sp.speed_factor, sp.max_speed))
         parts.append(
             f'  <vehicle id="{sp.vid}" type="{vtype}" route="{sp.route}" depart="0" departLane="{sp.lane}"'

@@ -42,9 +42,9 @@ class Setting:
         resolved = resolve(cfg, net)
         for note in resolved.notes if warn else ():
             log.warning("%s", note)
-        for key in ("hv", "merger") if warn else ():
+        for key in ("hv", "merger", "merger_alt") if warn else ():
             driver = getattr(cfg, key)
-            if ignored := driver.ignored_lc_params():
+            if driver is not None and (ignored := driver.ignored_lc_params()):
                 log.warning("%s.lc_params: %s ignores %s (SL2015 reads it; set %s.lane_change_model: SL2015 to use "
                             "it)", key, driver.lane_change_model, ", ".join(ignored), key)
         config = resolved.config
