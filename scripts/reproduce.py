@@ -1,0 +1,187 @@
+"""One command per result: the training runs a committed table needs, then the script that makes the table from
+them, every part resumable.
+
+    python scripts/reproduce.py --list
+    python scripts/reproduce.py heldout_headway                 # the README's headline table
+    python scripts/reproduce.py phi_grid --parallel 3 --runs runs/reproduce --out runs/phi_grid
+
+A recipe names its training runs (config, `--set`, episodes, the weights a fine-tune starts from) and the
+evaluation that turns them into the table. Each run trains into `RUNS/<name>`: one whose checkpoint reached its
+episodes is left as it is, one with a checkpoint short of them goes on (`cosim train --resume`), any other starts;
+runs that several recipes share train once. `--parallel N` trains N at a time, each with `train.torch_threads=1`
+(on 2 cores two runs at once give 1.2x one alone; two threads each fall to a fifth: docs/speed.md). Then the
+evaluation script writes into `OUT` (default `RUNS/<recipe>`), itself resumable: a second call plays only what is
+missing. Nothing is written into `results/` or `policies/`: compare with the committed report the recipe names.
+
+The recipes are the commands the committed results were made with (each report states its command and machine).
+A rerun gives figures within their intervals, not the same bits: bfloat16 forward passes and the order in which
+worker processes finish are not bitwise reproducible.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import shlex
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from cosim.errors import CosimError, run_script
+
+log = logging.getLogger("reproduce")
+ROOT = Path(__file__).resolve().parents[1]
+PI4 = "0.7854"
+ANGLES = {"phi0": "0", "pi8": "0.3927", "pi4": PI4, "3pi8": "1.1781", "pi2": "1.5708"}
+# The console script beside this interpreter: a virtual environment's, whether or not it is activated.
+COSIM = str(next((p for p in (Path(sys.executable).with_name("cosim"),) if p.is_file()), "cosim"))
+SEEDS = (15, 16, 17)  # seeds no earlier run used, fixed before the first of these trained
+
+
+@dataclass(frozen=True)
+class Run:
+    name: str  # its folder under RUNS
+    sets: tuple[str, ...]
+    episodes: int
+    config: str = "configs/default.yaml"
+    init_from: str | None = None  # a run under RUNS whose best.pt a fine-tune starts from
+
+    def argv(self, runs: Path, resume: bool) -> list[str]:
+        sets = [*self.sets, "train.eval_every=500", "train.torch_threads=1"]
+        argv = [COSIM, "train", "--config", str(ROOT / self.config), *(a for s in sets for a in ("--set", s)),
+                "--episodes", str(self.episodes), "--out", str(runs / self.name)]
+        if resume:
+            return [*argv, "--resume"]
+        return [*argv, "--init-from", str(runs / self.init_from / "best.pt")] if self.init_from else argv
+
+
+@dataclass(frozen=True)
+class Recipe:
+    what: str
+    report: str  # the committed report it reproduces
+    runs: tuple[Run, ...]
+    script: str
+    args: tuple[str, ...] = field(default=())  # after the run folders; {out} is OUT
+    runs_flag: tuple[str, ...] = ()  # before the run folders, where the script takes them as an option
+
+    def evaluation(self, runs: Path, out: Path) -> list[str]:
+        folders = [str(runs / r.name) for r in self.runs]
+        return [sys.executable, str(ROOT / "scripts" / self.script), *self.runs_flag, *folders,
+                *(a.format(out=out) for a in self.args)]
+
+
+def _default(angle: str, seed: int) -> Run:
+    """Today's default config (the headway cost on) at one angle and seed, 4,008 episodes."""
+    return Run(f"hw1_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}"), 4008)
+
+
+def _mixed(angle: str, seed: int) -> Run:
+    """The default run of the same angle and seed fine-tuned on both merging drivers, 2,004 episodes."""
+    return Run(f"mix_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}"), 2004,
+               "configs/mixed_merger.yaml", f"hw1_{angle}_s{seed}")
+
+
+HELDOUT = ("--shield", "--out", "{out}")
+RECIPES = {
+    "heldout_headway": Recipe(
+        "the paper's claims, three training seeds per angle, polite and impatient merging vehicle, with and without "
+        "the shield", "results/heldout_headway/heldout.md",
+        tuple(_default(a, s) for a in ("phi0", "pi4") for s in SEEDS), "heldout.py", HELDOUT),
+    "phi_grid": Recipe(
+        "the trade-off over the SVO angle, one training seed", "results/phi_grid_headway/heldout.md",
+        tuple(_default(a, SEEDS[0]) for a in ANGLES), "heldout.py", ("--out", "{out}")),
+    "mixed_merger": Recipe(
+        "the same claims after fine-tuning on both merging drivers (configs/mixed_merger.yaml)",
+        "results/heldout_mixed/heldout.md", tuple(_mixed(a, s) for a in ("phi0", "pi4") for s in SEEDS),
+        "heldout.py", HELDOUT),
+    "transfer": Recipe(
+        "the first seed of each angle on nets it never saw, beside the baselines", "results/transfer/transfer.md",
+        (_default("phi0", SEEDS[0]), _default("pi4", SEEDS[0])), "transfer.py", ("--out", "{out}"), ("--run",)),
+}
+
+
+def _needed(recipe: Recipe) -> list[Run]:
+    """The recipe's runs with the runs their fine-tunes start from first."""
+    by_name = {r.name: r for r in recipe.runs}
+    order: list[Run] = []
+    for run in recipe.runs:
+        if run.init_from and run.init_from not in by_name:
+            angle, seed = run.name.split("_")[1], int(run.name.rsplit("_s", 1)[1])
+            base = _default(angle, seed)
+            if base not in order:
+                order.append(base)
+        order.append(run)
+    return order
+
+
+def _state(run: Run, runs: Path) -> str:
+    """done, partial (a checkpoint short of its episodes) or new."""
+    ckpt = runs / run.name / "checkpoint.pt"
+    if not ckpt.is_file():
+        return "new"
+    from agents.checkpoint import read_checkpoint  # torch only here
+
+    return "done" if int(read_checkpoint(ckpt)["counters"]["episodes"]) >= run.episodes else "partial"
+
+
+def _train(todo: list[Run], runs: Path, parallel: int) -> None:
+    """Train `todo` (dependencies before the runs that start from them), `parallel` at a time."""
+    pending, live, failed = list(todo), {}, []
+    while pending or live:
+        names = {r.name for r in pending} | set(live)
+        ready = [r for r in pending if not (r.init_from and r.init_from in names)]
+        while ready and len(live) < parallel:
+            run = ready.pop(0)
+            pending.remove(run)
+            argv = run.argv(runs, resume=_state(run, runs) == "partial")
+            (runs / "logs").mkdir(parents=True, exist_ok=True)
+            out = (runs / "logs" / f"{run.name}.log").open("a", encoding="utf-8")
+            log.info("training %s: %s (log: %s)", run.name, shlex.join(argv), out.name)
+            live[run.name] = (subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT), out)
+        time.sleep(2)
+        for name, (proc, out) in list(live.items()):
+            if proc.poll() is not None:
+                out.close()
+                del live[name]
+                (failed.append(name) if proc.returncode else log.info("%s trained", name))
+                if proc.returncode:
+                    pending = [r for r in pending if r.init_from != name]
+    if failed:
+        raise CosimError(f"training failed: {', '.join(failed)} (see {runs / 'logs'}); a second call resumes them")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("recipe", nargs="?", choices=sorted(RECIPES), help="the result to reproduce")
+    parser.add_argument("--list", action="store_true", help="list the recipes and what each would run")
+    parser.add_argument("--runs", type=Path, default=Path("runs/reproduce"), help="where the training runs go")
+    parser.add_argument("--parallel", type=int, default=2, help="training runs at once")
+    parser.add_argument("--out", type=Path, help="the evaluation's folder (default RUNS/<recipe>)")
+    args = parser.parse_args()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
+    if args.parallel < 1:
+        raise CosimError(f"--parallel must be >= 1, got {args.parallel}")
+    if args.list or args.recipe is None:
+        for name, recipe in RECIPES.items():
+            print(f"{name}: {recipe.what} ({recipe.report})")
+            for run in _needed(recipe):
+                print(f"    {shlex.join(run.argv(args.runs, resume=False))}")
+            print(f"    then {shlex.join(recipe.evaluation(args.runs, args.out or args.runs / name))}")
+        return
+    recipe = RECIPES[args.recipe]
+    start = time.perf_counter()
+    needed = _needed(recipe)
+    todo = [r for r in needed if _state(r, args.runs) != "done"]
+    log.info("%s: %d training runs, %d to train; then %s", args.recipe, len(needed), len(todo), recipe.script)
+    _train(todo, args.runs, args.parallel)
+    argv = recipe.evaluation(args.runs, args.out or args.runs / args.recipe)
+    log.info("evaluating: %s", shlex.join(argv))
+    if subprocess.run(argv, check=False).returncode:
+        raise CosimError(f"{recipe.script} failed; a second call resumes it")
+    log.info("%s reproduced in %.0f s (compare with %s)", args.recipe, time.perf_counter() - start, recipe.report)
+
+
+if __name__ == "__main__":
+    run_script(main, log)

@@ -1,0 +1,50 @@
+"""scripts/reproduce.py: a recipe's runs train once, in the order their fine-tunes need, and a second call goes on
+from where the first stopped (a run short of its episodes resumes, a finished one is left as it is)."""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from agents.checkpoint import read_checkpoint
+
+ROOT = Path(__file__).resolve().parents[1]
+spec = importlib.util.spec_from_file_location("reproduce", ROOT / "scripts" / "reproduce.py")
+reproduce = sys.modules["reproduce"] = importlib.util.module_from_spec(spec)  # dataclasses look their module up
+spec.loader.exec_module(reproduce)
+
+
+def test_every_recipe_lists_its_commands_and_a_fine_tune_comes_after_what_it_starts_from() -> None:
+    done = subprocess.run([sys.executable, "scripts/reproduce.py", "--list"], capture_output=True, text=True,
+                          cwd=ROOT, check=True)
+    for name in reproduce.RECIPES:
+        assert f"{name}: " in done.stdout
+    order = [r.name for r in reproduce._needed(reproduce.RECIPES["mixed_merger"])]
+    assert len(order) == 12
+    for seed in reproduce.SEEDS:
+        assert order.index(f"hw1_pi4_s{seed}") < order.index(f"mix_pi4_s{seed}")
+
+
+def test_a_bad_parallel_is_one_line() -> None:
+    done = subprocess.run([sys.executable, "scripts/reproduce.py", "transfer", "--parallel", "0"], cwd=ROOT,
+                          capture_output=True, text=True)
+    assert done.returncode == 2 and "--parallel must be >= 1, got 0" in done.stderr and "Traceback" not in done.stderr
+
+
+@pytest.mark.sumo
+def test_runs_train_once_and_a_longer_one_resumes(tmp_path: Path) -> None:
+    short = reproduce.Run("smoke", ("train.seed=3",), 4, "configs/smoke.yaml")
+    assert reproduce._state(short, tmp_path) == "new"
+    reproduce._train([short], tmp_path, parallel=1)
+    assert reproduce._state(short, tmp_path) == "done"
+    longer = reproduce.Run("smoke", ("train.seed=3",), 8, "configs/smoke.yaml")
+    assert reproduce._state(longer, tmp_path) == "partial"
+    assert "--resume" in longer.argv(tmp_path, resume=True)
+    reproduce._train([longer], tmp_path, parallel=1)
+    assert int(read_checkpoint(tmp_path / "smoke" / "checkpoint.pt")["counters"]["episodes"]) >= 8
+    log = (tmp_path / "logs" / "smoke.log").read_text()
+    assert log.count("trained") >= 2, log[-2000:]
