@@ -78,8 +78,8 @@ def _default(angle: str, seed: int) -> Run:
 
 
 def _mixed(angle: str, seed: int) -> Run:
-    """The default run of the same angle and seed fine-tuned on both merging drivers, 2,004 episodes."""
-    return Run(f"mix_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}"), 2004,
+    """The default run of the same angle and seed fine-tuned on both merging drivers, 4,008 episodes."""
+    return Run(f"mix_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}"), 4008,
                "configs/mixed_merger.yaml", f"hw1_{angle}_s{seed}")
 
 
