@@ -36,6 +36,7 @@ def test_a_bad_parallel_is_one_line() -> None:
 
 
 @pytest.mark.sumo
+@pytest.mark.slow  # two short trainings, over 30 s: CI runs it with the long tests
 def test_runs_train_once_and_a_longer_one_resumes(tmp_path: Path) -> None:
     short = reproduce.Run("smoke", ("train.seed=3",), 4, "configs/smoke.yaml")
     assert reproduce._state(short, tmp_path) == "new"
