@@ -26,17 +26,17 @@ import shlex
 import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from cosim.errors import CosimError, run_script
 
 log = logging.getLogger("reproduce")
 ROOT = Path(__file__).resolve().parents[1]
-PI4 = "0.7854"
-ANGLES = {"phi0": "0", "pi8": "0.3927", "pi4": PI4, "3pi8": "1.1781", "pi2": "1.5708"}
+ANGLES = {"phi0": "0", "pi8": "0.3927", "pi4": "0.7854", "3pi8": "1.1781", "pi2": "1.5708"}
 # The console script beside this interpreter: a virtual environment's, whether or not it is activated.
-COSIM = str(next((p for p in (Path(sys.executable).with_name("cosim"),) if p.is_file()), "cosim"))
+_BESIDE = Path(sys.executable).with_name("cosim")
+COSIM = str(_BESIDE) if _BESIDE.is_file() else "cosim"
 SEEDS = (15, 16, 17)  # seeds no earlier run used, fixed before the first of these trained
 
 
@@ -46,7 +46,7 @@ class Run:
     sets: tuple[str, ...]
     episodes: int
     config: str = "configs/default.yaml"
-    init_from: str | None = None  # a run under RUNS whose best.pt a fine-tune starts from
+    init_from: Run | None = None  # the run whose best.pt a fine-tune starts from
 
     def argv(self, runs: Path, resume: bool) -> list[str]:
         sets = [*self.sets, "train.eval_every=500", "train.torch_threads=1"]
@@ -54,7 +54,7 @@ class Run:
                 "--episodes", str(self.episodes), "--out", str(runs / self.name)]
         if resume:
             return [*argv, "--resume"]
-        return [*argv, "--init-from", str(runs / self.init_from / "best.pt")] if self.init_from else argv
+        return [*argv, "--init-from", str(runs / self.init_from.name / "best.pt")] if self.init_from else argv
 
 
 @dataclass(frozen=True)
@@ -63,7 +63,7 @@ class Recipe:
     report: str  # the committed report it reproduces
     runs: tuple[Run, ...]
     script: str
-    args: tuple[str, ...] = field(default=())  # after the run folders; {out} is OUT
+    args: tuple[str, ...] = ()  # after the run folders; {out} is OUT
     runs_flag: tuple[str, ...] = ()  # before the run folders, where the script takes them as an option
 
     def evaluation(self, runs: Path, out: Path) -> list[str]:
@@ -80,7 +80,7 @@ def _default(angle: str, seed: int) -> Run:
 def _mixed(angle: str, seed: int) -> Run:
     """The default run of the same angle and seed fine-tuned on both merging drivers, 4,008 episodes."""
     return Run(f"mix_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}"), 4008,
-               "configs/mixed_merger.yaml", f"hw1_{angle}_s{seed}")
+               "configs/mixed_merger.yaml", _default(angle, seed))
 
 
 HELDOUT = ("--shield", "--out", "{out}")
@@ -104,15 +104,11 @@ RECIPES = {
 
 def _needed(recipe: Recipe) -> list[Run]:
     """The recipe's runs with the runs their fine-tunes start from first."""
-    by_name = {r.name: r for r in recipe.runs}
     order: list[Run] = []
     for run in recipe.runs:
-        if run.init_from and run.init_from not in by_name:
-            angle, seed = run.name.split("_")[1], int(run.name.rsplit("_s", 1)[1])
-            base = _default(angle, seed)
-            if base not in order:
-                order.append(base)
-        order.append(run)
+        for needed in (run.init_from, run):
+            if needed is not None and needed not in order:
+                order.append(needed)
     return order
 
 
@@ -126,16 +122,17 @@ def _state(run: Run, runs: Path) -> str:
     return "done" if int(read_checkpoint(ckpt)["counters"]["episodes"]) >= run.episodes else "partial"
 
 
-def _train(todo: list[Run], runs: Path, parallel: int) -> None:
-    """Train `todo` (dependencies before the runs that start from them), `parallel` at a time."""
+def _train(todo: list[Run], partial: set[str], runs: Path, parallel: int) -> None:
+    """Train `todo` (dependencies before the runs that start from them), `parallel` at a time; the runs named in
+    `partial` resume."""
     pending, live, failed = list(todo), {}, []
     while pending or live:
         names = {r.name for r in pending} | set(live)
-        ready = [r for r in pending if not (r.init_from and r.init_from in names)]
+        ready = [r for r in pending if not (r.init_from and r.init_from.name in names)]
         while ready and len(live) < parallel:
             run = ready.pop(0)
             pending.remove(run)
-            argv = run.argv(runs, resume=_state(run, runs) == "partial")
+            argv = run.argv(runs, resume=run.name in partial)
             (runs / "logs").mkdir(parents=True, exist_ok=True)
             out = (runs / "logs" / f"{run.name}.log").open("a", encoding="utf-8")
             log.info("training %s: %s (log: %s)", run.name, shlex.join(argv), out.name)
@@ -145,9 +142,11 @@ def _train(todo: list[Run], runs: Path, parallel: int) -> None:
             if proc.poll() is not None:
                 out.close()
                 del live[name]
-                (failed.append(name) if proc.returncode else log.info("%s trained", name))
                 if proc.returncode:
-                    pending = [r for r in pending if r.init_from != name]
+                    failed.append(name)
+                    pending = [r for r in pending if not (r.init_from and r.init_from.name == name)]
+                else:
+                    log.info("%s trained", name)
     if failed:
         raise CosimError(f"training failed: {', '.join(failed)} (see {runs / 'logs'}); a second call resumes them")
 
@@ -173,9 +172,10 @@ def main() -> None:
     recipe = RECIPES[args.recipe]
     start = time.perf_counter()
     needed = _needed(recipe)
-    todo = [r for r in needed if _state(r, args.runs) != "done"]
+    states = {r.name: _state(r, args.runs) for r in needed}
+    todo = [r for r in needed if states[r.name] != "done"]
     log.info("%s: %d training runs, %d to train; then %s", args.recipe, len(needed), len(todo), recipe.script)
-    _train(todo, args.runs, args.parallel)
+    _train(todo, {name for name, state in states.items() if state == "partial"}, args.runs, args.parallel)
     argv = recipe.evaluation(args.runs, args.out or args.runs / args.recipe)
     log.info("evaluating: %s", shlex.join(argv))
     if subprocess.run(argv, check=False).returncode:

@@ -40,12 +40,12 @@ def test_a_bad_parallel_is_one_line() -> None:
 def test_runs_train_once_and_a_longer_one_resumes(tmp_path: Path) -> None:
     short = reproduce.Run("smoke", ("train.seed=3",), 4, "configs/smoke.yaml")
     assert reproduce._state(short, tmp_path) == "new"
-    reproduce._train([short], tmp_path, parallel=1)
+    reproduce._train([short], set(), tmp_path, parallel=1)
     assert reproduce._state(short, tmp_path) == "done"
     longer = reproduce.Run("smoke", ("train.seed=3",), 8, "configs/smoke.yaml")
     assert reproduce._state(longer, tmp_path) == "partial"
     assert "--resume" in longer.argv(tmp_path, resume=True)
-    reproduce._train([longer], tmp_path, parallel=1)
+    reproduce._train([longer], {"smoke"}, tmp_path, parallel=1)
     assert int(read_checkpoint(tmp_path / "smoke" / "checkpoint.pt")["counters"]["episodes"]) >= 8
     log = (tmp_path / "logs" / "smoke.log").read_text()
     assert log.count("trained") >= 2, log[-2000:]

@@ -20,7 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from cosim.config import Config
+from cosim.config import Config, DriverConfig
 from cosim.sumo.net import Net
 
 
@@ -57,11 +57,13 @@ def resolve(cfg: Config, net: Net) -> Resolved:
     av = cfg.av.model_copy(update={
         "max_speed": factor_or(cfg.av.max_speed, cfg.av.max_speed_factor, limit), "max_speed_factor": None,
         "speed_step": factor_or(cfg.av.speed_step, cfg.av.speed_step_factor, limit), "speed_step_factor": None})
-    hv, merger, merger_alt = (
-        None if d is None else d.model_copy(update={"max_speed": factor_or(d.max_speed, d.max_speed_factor, limit),
-                                                    "max_speed_factor": None})
-        for d in (cfg.hv, cfg.merger, cfg.merger_alt))
-    mergers = [d for d in (merger, merger_alt if sc.merger_alt_share > 0 else None) if d is not None]
+    def top_speed(d: DriverConfig) -> DriverConfig:
+        return d.model_copy(update={"max_speed": factor_or(d.max_speed, d.max_speed_factor, limit),
+                                    "max_speed_factor": None})
+
+    hv, merger = top_speed(cfg.hv), top_speed(cfg.merger)
+    merger_alt = None if cfg.merger_alt is None else top_speed(cfg.merger_alt)
+    mergers = [merger, merger_alt] if merger_alt is not None and sc.merger_alt_share > 0 else [merger]
     obs = cfg.observation.model_copy(update={
         "speed_scale": factor_or(cfg.observation.speed_scale, cfg.observation.speed_scale_factor, limit),
         "speed_scale_factor": None})
