@@ -174,15 +174,20 @@ def _record_changes(out_dir: Path, changes: dict[str, tuple[Any, Any]], update: 
     atomic_write_text(path, yaml.safe_dump(history, sort_keys=False))
 
 
-def _check_net_unchanged(record: Path, where: dict[str, Any]) -> None:
-    """On resume: warn when the run's net file is not the one it trained on so far (same path, other content)."""
+def _resumed_record(record: Path, where: dict[str, Any]) -> None:
+    """On resume: warn when the run's net file is not the one it trained on so far (same path, other content), and
+    keep in `where` (the record the resume writes) the policy the run started from, a fact of the run that the
+    resuming command does not repeat (`--init-from` starts runs only)."""
     try:
-        before = json.loads(record.read_text(encoding="utf-8"))["net"]["sha256"]
+        before = json.loads(record.read_text(encoding="utf-8"))
+        sha = before["net"]["sha256"]
     except (OSError, ValueError, KeyError, TypeError):
         return  # a run from before nets were recorded, or a damaged record: nothing to compare
-    if before != where["net"]["sha256"]:
+    if "init_from" in before:
+        where["init_from"] = before["init_from"]
+    if sha != where["net"]["sha256"]:
         log.warning("%s: the net %s changed since this run began (sha256 %s, now %s): the run goes on, on the new one",
-                    record, where["net"]["file"], before[:12], where["net"]["sha256"][:12])
+                    record, where["net"]["file"], sha[:12], where["net"]["sha256"][:12])
 
 
 def _check_memory(cfg: Config, tc: TrainConfig, backend: Backend, setting: Setting | None) -> None:
@@ -366,7 +371,7 @@ class _Run:
                     log.warning("%s", gap)
             where = setting.record(overrides) if setting is not None and env_factory is None else None
             if where is not None and resume:
-                _check_net_unchanged(out_dir / NET_RECORD, where)
+                _resumed_record(out_dir / NET_RECORD, where)
             if where is not None and start is not None:
                 where["init_from"] = start[1]["path"]
             offered = (setting.demand.mainline_total + setting.demand.ramp_vph

@@ -1,6 +1,7 @@
 """The trainer end to end on the fake env: learning, checkpoints, resume, worker restarts, Ctrl-C, CLI."""
 
 import csv
+import json
 import os
 import signal
 from pathlib import Path
@@ -345,6 +346,22 @@ def test_init_from_starts_a_new_run_from_a_policys_weights_with_a_fresh_optimize
     with pytest.raises(CheckpointError, match="incompatible feature_dim"):
         train(cfg_with(feature_dim=16), tmp_path / "third", workers=1, episodes=1, progress=False,
               env_factory=make_fake_env(n_agents=2), init_from=tmp_path / "half.pt")
+
+
+def test_a_resumed_fine_tune_still_names_the_policy_it_started_from(tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+    # The resume rewrote net.json from its own command line, which has no --init-from: the fine-tune's origin was lost.
+    from agents.checkpoint import export_policy
+
+    monkeypatch.setattr(train_module, "_default_env_factory", lambda cfg: make_fake_env(n_agents=2))
+    first = train(cfg_with(), tmp_path / "first", workers=1, episodes=2, progress=False)
+    export_policy(first.checkpoint, tmp_path / "start.pt")
+    tune = tmp_path / "tune"
+    train(cfg_with(), tune, workers=1, episodes=2, progress=False, init_from=tmp_path / "start.pt")
+    started = json.loads((tune / "net.json").read_text())["init_from"]
+    assert Path(started).resolve() == (tmp_path / "start.pt").resolve()
+    train(cfg_with(), tune, workers=1, episodes=4, resume=True, progress=False)
+    assert json.loads((tune / "net.json").read_text())["init_from"] == started
 
 
 def test_a_signal_during_a_checkpoint_write_waits_until_the_write_is_whole(caplog: pytest.LogCaptureFixture) -> None:
