@@ -69,11 +69,12 @@ def main() -> None:
     if len(set(names)) < len(names) or {HUMAN, BAR} & set(names):
         raise CosimError(f"runs are named by their folders, which must differ from each other and from {HUMAN} and "
                          f"{BAR}: got {', '.join(names)}")
-    phis = {}
+    phis, seeds = {}, {}
     for run in args.runs:
         if not (run / "config.yaml").is_file():
             raise CosimError(f"{run}: not a training run folder (no config.yaml)")
-        phis[run.name] = float(load_config(run / "config.yaml").reward.phi)
+        run_cfg = load_config(run / "config.yaml")
+        phis[run.name], seeds[run.name] = float(run_cfg.reward.phi), run_cfg.train.seed
     players: list[tuple[str, Any, Path]] = [(HUMAN, Baseline("sumo"), args.config), (BAR, Baseline("scripted"),
                                                                                     args.config)]
     players += [(run.name, TrainedPolicy(str(find_checkpoint(run, None))), run / "config.yaml") for run in args.runs]
@@ -100,7 +101,8 @@ def main() -> None:
              f"`{command}`: {args.seeds} runs per (cell, player) of a warm-up and a measurement window on evaluation "
              f"seeds {EVAL_SEED_START}..{EVAL_SEED_START + args.seeds - 1}; means with 95% t-intervals over the "
              f"runs; {wall / 60:.1f} min (runs done before a resume not counted). `{HUMAN}`: every AV a SUMO "
-             f"driver; trained runs: {', '.join(f'{n} (phi {p:.4f})' for n, p in phis.items())}.", ""]
+             f"driver; trained runs: "
+             f"{', '.join(f'{n} (phi {p:.4f}, training seed {seeds[n]})' for n, p in phis.items())}.", ""]
     checks: dict[str, dict[float, list[str]]] = {}
     for level, by_share in cells.items():
         for share, table in by_share.items():
@@ -111,7 +113,7 @@ def main() -> None:
                       f"{d.get('level_of_service', '?')}.", "",
                       format_table({p: {k: v for k, v in m.items() if k in FLOW_METRICS} for p, m in table.items()},
                                    {p: args.seeds for p in table}, markdown=True), ""]
-            found = cell_checks(table, phis)
+            found = cell_checks(table, phis, seeds)
             checks.setdefault(level, {})[share] = found
             lines += [f"- {c}" for c in found] + [""]
     caption = (f"{args.seeds} seeds per point; demand levels as shares of the HCM capacities "
@@ -136,10 +138,12 @@ def compare(a: dict[str, float], b: dict[str, float], higher_better: bool) -> st
         (" (intervals apart)" if apart else " (intervals overlap)")
 
 
-def cell_checks(table: dict[str, dict[str, dict[str, float]]], phis: dict[str, float]) -> list[str]:
+def cell_checks(table: dict[str, dict[str, dict[str, float]]], phis: dict[str, float],
+                seeds: dict[str, int]) -> list[str]:
     """One cell's checks: each trained run's total throughput against all-human traffic's (fails only where its
     interval lies wholly below) and its crash per merging vehicle against `scripted`'s (fails only where wholly
-    above); then each flow measure of every run at the highest angle against the first run at the lowest."""
+    above); then each flow measure of every run at the highest angle against the run at the lowest of its training
+    seed (`seeds`: run -> train.seed), or the first run at the lowest where no run there shares its seed."""
     out = []
     for run in phis:
         t, h = table[run][THROUGHPUT], table[HUMAN][THROUGHPUT]
@@ -149,8 +153,9 @@ def cell_checks(table: dict[str, dict[str, dict[str, float]]], phis: dict[str, f
         out.append(f"{run}: crash per merging vehicle [%] {interval_text(c)} against {BAR} {interval_text(s)}: "
                    f"{'fails (higher, intervals apart)' if c['ci_low'] > s['ci_high'] else 'holds'}")
     if len(set(phis.values())) >= 2:
-        ego = min(phis, key=phis.get)
+        lowest = [run for run, phi in phis.items() if phi == min(phis.values())]
         for alt in [run for run, phi in phis.items() if phi == max(phis.values())]:
+            ego = next((run for run in lowest if seeds[run] == seeds[alt]), lowest[0])
             for metric, higher in CLAIM.items():
                 if metric in table[alt] and metric in table[ego]:
                     a, e = table[alt][metric], table[ego][metric]
