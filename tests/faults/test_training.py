@@ -116,9 +116,7 @@ def test_a_signal_stops_training_with_a_checkpoint_and_exit_130(cli: Any, tmp_pa
     assert cli.no_leftovers()
 
 
-# The stopped worker in training is slow (about 45 s): a silent worker's replacement stays in the default run at the
-# pool's level (tests/cosim/test_workers.py).
-@pytest.mark.parametrize("fault", ["kill", pytest.param("stop", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("fault", ["kill", "stop"])
 def test_a_killed_or_stopped_worker_is_replaced_and_training_goes_on(cli: Any, tmp_path: Path,
                                                                      fault: str) -> None:
     proc = _start_training(cli, "train.step_timeout=5", "train.episodes=12")
