@@ -93,7 +93,7 @@ COUNTERS = ("episodes", "updates", "samples", "restarts", "lost_episodes", "vali
 NET_RECORD = "net.json"  # the net a run trains on (path, sha256, summary) and the scenario resolved on it
 # The env's summary keys an episodes.csv row carries: of an episode, and of a run under demand.
 EPISODE_KEYS = ("crashed", "merged", "mean_distance", "merger_distance", "length", "cause_av", "cause_hv_into_av",
-                "cause_merger")
+                "cause_merger", "merger_alt")
 DEMAND_KEYS = ("length", "avs_released", "collisions", "collisions_window", "merge_rate_pct", "crash_rate_pct",
                "throughput_total_vph", "throughput_mainline_vph", "throughput_ramp_vph", "delay_mean_s",
                "delay_ramp_s")

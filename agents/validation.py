@@ -18,6 +18,8 @@ Contract:
   the merging vehicle's distance and the return with t-intervals (`cosim.evaluation.stats`); under demand the
   window's collisions, merge success per merging vehicle, throughput and delay per vehicle, with t-intervals over
   the runs (`DEMAND_FIGURES`); and `greedy_action_<k>`, the share [%] of the decisions that took action k.
+  Where the episodes mix merging drivers (`scenario.merger_alt_share`), crash and merge success of each too
+  (`crash_merger_alt`, `merge_merger`, ... with `_low` / `_high`: `cosim.evaluation.stats.by_merger`).
 - `constant_action(fig)`: the action a validation's greedy policy took at >= `CONSTANT_SHARE` of its decisions, or
   None. Such a validation measures one constant action (every AV idling, say) rather than what the sampling
   policy has learned: the trainer says so in its log, since the curve and best.pt then compare no driving.
@@ -143,6 +145,12 @@ def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95) -> di
         got = metrics.get(label, {"mean": math.nan, "ci_low": math.nan, "ci_high": math.nan})
         out[name], out[f"{name}_low"], out[f"{name}_high"] = got["mean"], got["ci_low"], got["ci_high"]
     out["return"], out["return_low"], out["return_high"] = ret.mean, ret.low, ret.high
+    split = {} if is_demand(rows) else stats.by_merger(rows, confidence)
+    for name, label in FIGURES.items():
+        for driver in stats.MERGER_DRIVERS:
+            if (got := split.get(f"{label}, {driver}")) is not None:
+                out[f"{name}_{driver}"], out[f"{name}_{driver}_low"] = got["mean"], got["ci_low"]
+                out[f"{name}_{driver}_high"] = got["ci_high"]
     taken = np.sum([r["greedy_actions"] for r in rows if "greedy_actions" in r], axis=0)
     if np.ndim(taken) and taken.sum():
         out.update({f"greedy_action_{k}": float(100.0 * n / taken.sum()) for k, n in enumerate(taken)})
@@ -199,9 +207,12 @@ def describe(fig: Mapping[str, float]) -> str:
                 f"window, merge {fig['merge']:.1f}% [{fig['merge_low']:.1f}, {fig['merge_high']:.1f}], throughput "
                 f"{fig['throughput']:.0f} veh/h [{fig['throughput_low']:.0f}, {fig['throughput_high']:.0f}], delay "
                 f"{fig['delay']:.1f} s per vehicle, return {fig['return']:.1f}")
+    drivers = [d for d in stats.MERGER_DRIVERS if f"crash_{d}" in fig]
+    split = "".join(f", {d}: crash {fig[f'crash_{d}']:.1f}% [{fig[f'crash_{d}_low']:.1f}, "
+                    f"{fig[f'crash_{d}_high']:.1f}] merge {fig[f'merge_{d}']:.1f}%" for d in drivers)
     return (f"crash {fig['crash']:.1f}% [{fig['crash_low']:.1f}, {fig['crash_high']:.1f}], merge {fig['merge']:.1f}% "
             f"[{fig['merge_low']:.1f}, {fig['merge_high']:.1f}], conflicts {fig['conflicts']:.2f} per episode, "
-            f"return {fig['return']:.1f}")
+            f"return {fig['return']:.1f}{split}")
 
 
 # The criterion of a safe policy (issue 29), on one validation's figures: crash at most 2% with an upper bound at

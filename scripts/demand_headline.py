@@ -9,10 +9,10 @@ from training and validation), every player is one resumable `cosim evaluate` in
 `OUT/<level>/<penetration>/<player>/`: `all-human` (every AV a SUMO driver: the traffic without AVs), `scripted`
 (the hand-written AV, the collisions bar), and each trained run's `best.pt` on its own config with only the demand
 changed (the baselines play on `--config`; `--set` and `--net` apply to every player). A second call plays only
-the runs missing. Writes `OUT/headline.md` (per cell the flow table with 95% t-intervals over seeds, and the
-checks: trained AVs' throughput no lower than all-human traffic's and their crash per merging vehicle no higher
-than `scripted`'s, and egoistic against altruistic on each flow measure), `OUT/headline.json` and
-`OUT/headline.png` (delay and throughput against penetration, a band per player).
+the runs missing. Writes `OUT/headline.md` (per cell the flow table with 95% t-intervals over seeds, each player's
+level of service, and the checks: trained AVs' throughput no lower than all-human traffic's and their crash per
+merging vehicle no higher than `scripted`'s, and egoistic against altruistic on each flow measure),
+`OUT/headline.json` and `OUT/headline.png` (delay and throughput against penetration, a band per player).
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from typing import Any
 
 from cosim.cli import add_config_arguments, config_overrides
 from cosim.config import DEFAULT_CONFIG, DEMAND_LEVELS, EVAL_SEED_START, load_config
+from cosim.environment.flow_metrics import level_of_service
 from cosim.errors import CosimError, run_script
 from cosim.evaluation.flow_plots import penetration_curves
 from cosim.evaluation.runner import Baseline, evaluate
@@ -36,9 +37,10 @@ from cosim.files import atomic_write_text, write_json
 log = logging.getLogger("demand_headline")
 HUMAN, BAR = "all-human", "scripted"
 THROUGHPUT, CRASH = "throughput, total [veh/h]", "crash, per merging vehicle [%]"
+DENSITY = "density, merge influence area [veh/km/ln]"
 # The flow claim's measures, and whether more is better.
 CLAIM = {"delay, ramp vehicles [s]": False, "total delay [veh h]": False, "total time spent [veh h]": False,
-         THROUGHPUT: True, "ramp queue, mean [veh]": False, "density, merge influence area [veh/km/ln]": False,
+         THROUGHPUT: True, "ramp queue, mean [veh]": False, DENSITY: False,
          "distance per vehicle [m]": True, CRASH: False, "collisions [per window]": False,
          "conflicts [per window]": False, "conflicts with a ramp vehicle [per window]": False}
 
@@ -112,7 +114,8 @@ def main() -> None:
                       f"{d['capacity']}; level of service (HCM, the all-human traffic's): "
                       f"{d.get('level_of_service', '?')}.", "",
                       format_table({p: {k: v for k, v in m.items() if k in FLOW_METRICS} for p, m in table.items()},
-                                   {p: args.seeds for p in table}, markdown=True), ""]
+                                   {p: args.seeds for p in table}, markdown=True), "",
+                      service_levels(table, bool(d.get("over_capacity"))), ""]
             found = cell_checks(table, phis, seeds)
             checks.setdefault(level, {})[share] = found
             lines += [f"- {c}" for c in found] + [""]
@@ -136,6 +139,16 @@ def compare(a: dict[str, float], b: dict[str, float], higher_better: bool) -> st
     better = (a["mean"] > b["mean"]) == higher_better and a["mean"] != b["mean"]
     return f"{'better' if better else 'worse' if a['mean'] != b['mean'] else 'equal'}" + \
         (" (intervals apart)" if apart else " (intervals overlap)")
+
+
+def service_levels(table: dict[str, dict[str, dict[str, float]]], over_capacity: bool) -> str:
+    """Each player's HCM level of service in the merge influence area, of its mean density and of its interval's
+    bounds (F for all where the demand exceeds the capacity)."""
+    def letters(m: dict[str, float]) -> str:
+        low, mean, high = (level_of_service(m[k], over_capacity) for k in ("ci_low", "mean", "ci_high"))
+        return f"{mean} [{low}, {high}]"
+    return "level of service (HCM, of each player's mean density [and of its interval's bounds]): " + \
+        "; ".join(f"{p} {letters(m[DENSITY])}" for p, m in table.items() if DENSITY in m)
 
 
 def cell_checks(table: dict[str, dict[str, dict[str, float]]], phis: dict[str, float],

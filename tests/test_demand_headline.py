@@ -32,3 +32,12 @@ def test_an_altruistic_run_is_weighed_against_the_egoistic_run_of_its_training_s
     # An altruistic run whose seed no egoistic run shares is weighed against the first egoistic one.
     seeds["alt_s2"] = 3
     assert any(c.startswith("alt_s2 against ego_s1, throughput") for c in headline.cell_checks(table, phis, seeds))
+
+
+def test_each_player_gets_the_level_of_service_of_its_density_and_of_its_interval() -> None:
+    # 16 / 20 / 24 veh/km/ln are 25.7 / 32.2 / 38.6 pc/mi/ln: HCM's C, D and E; 4 / 5 / 7 are A, A and B.
+    table = {"all-human": {headline.DENSITY: {"mean": 20.0, "ci_low": 16.0, "ci_high": 24.0}},
+             "ego_s1": {headline.DENSITY: {"mean": 5.0, "ci_low": 4.0, "ci_high": 7.0}}}
+    assert headline.service_levels(table, over_capacity=False).endswith("all-human D [C, E]; ego_s1 A [A, B]")
+    # Demand over the capacity is F whatever the density.
+    assert headline.service_levels(table, over_capacity=True).endswith("all-human F [F, F]; ego_s1 F [F, F]")

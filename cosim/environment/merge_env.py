@@ -65,6 +65,7 @@ class MergeEnv(SumoEnv):
         # [m] odometer of every vehicle at the end of the flow window (flush_outputs), to check SUMO's against
         self.window_distance: dict[str, float] = {}
         self._pending_outputs: tuple[int, Path] | None = None  # written, not yet complete
+        self._merger_alt = False  # the running episode's merging vehicle drives the merger_alt type
         self._window_end = 0.0  # [s] simulation time of the horizon in the running episode
         # Collisions of these classes end the episode (the paper's rule).
         self._stop_on = frozenset({KIND_AV, KIND_MERGER}) if config.sim.on_collision == "end" else frozenset()
@@ -75,7 +76,9 @@ class MergeEnv(SumoEnv):
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         seed = self._begin_reset(seed)
-        write_episode(plan_episode(self.cfg, self.net, seed), self.cfg, self.net.desc, self.route_file)
+        plan = plan_episode(self.cfg, self.net, seed)
+        write_episode(plan, self.cfg, self.net.desc, self.route_file)
+        self._merger_alt = any(sp.alt for sp in plan.vehicles if sp.kind == KIND_MERGER)
         end_time = None if self._snap is None else self._snap.time
         extra: list[str] = []
         outputs = self.cfg.sim.outputs or bool((options or {}).get("outputs"))
@@ -188,8 +191,10 @@ class MergeEnv(SumoEnv):
         """Outcome of the episode for metrics: the tracker's row (length, time, crash, merge and time to merge,
         distances [m] and speeds [m/s] by class over every vehicle seen, ...), the seed, `merge_failed` (the
         merging vehicle got `stuck`) and `ended_by` (the `cosim.environment.episode.ENDINGS` name that ended it, or
-        agents_done). `snap` is the last snapshot, which the tracker has seen."""
-        return {"seed": self.episode_seed, **self.tracker.row(), "merge_failed": stuck, "ended_by": ended_by}
+        agents_done) and `merger_alt` (the merging vehicle drove the config's `merger_alt` type: a scenario that
+        mixes merging drivers is read per driver). `snap` is the last snapshot, which the tracker has seen."""
+        return {"seed": self.episode_seed, **self.tracker.row(), "merge_failed": stuck, "ended_by": ended_by,
+                "merger_alt": self._merger_alt}
 
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array" or self._snap is None:

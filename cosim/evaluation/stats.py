@@ -7,7 +7,9 @@ Contract:
   the Wilson score interval, which stays inside [0, 1] and has a width even at 0 or 1 (a t-interval would
   collapse to [0, 0] when no episode crashed); it is defined from one value on. `summarize(rows)` applies
   `rate_ci` to the rates of `RATE_METRICS` (crash %, merge success %) and `mean_ci` to every other metric
-  of `SUMMARY_METRICS`, over per-episode rows (dicts, as written to `episodes.csv`).
+  of `SUMMARY_METRICS`, over per-episode rows (dicts, as written to `episodes.csv`); where the rows mix the
+  polite and the alternative merging driver (their `merger_alt`), `by_merger` adds crash and merge success per
+  driver (`crash [%], merger_alt`, ...).
 - `rate(rows, column)` is one 0/1 column as a percentage with its Wilson interval; `finite(rows, column)` and
   `median(rows, column)` read one numeric column; `format_table` prints summaries side by side.
 """
@@ -121,6 +123,26 @@ def rate_ci(values: Iterable[float], confidence: float = 0.95) -> Interval:
     return Interval(k / n, float(ci.low), float(ci.high), n)
 
 
+# A scenario that draws the merging driver per episode (`scenario.merger_alt_share`) is also read per driver: the
+# pooled rates mix two populations in the share the config sets. The config's section -> the rows' `merger_alt`.
+MERGER_DRIVERS: dict[str, float] = {"merger": 0.0, "merger_alt": 1.0}
+SPLIT_RATES = ("crash [%]", "merge success [%]")
+
+
+def by_merger(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95) -> dict[str, dict[str, float | int]]:
+    """`<rate>, <driver>` for each of `SPLIT_RATES` over each merging driver's episodes (`MERGER_DRIVERS`), where
+    the rows hold episodes of both; else nothing."""
+    alt = column_of(rows, "merger_alt")
+    if not (np.any(alt == 1.0) and np.any(alt == 0.0)):
+        return {}
+    out = {}
+    for driver, flag in MERGER_DRIVERS.items():
+        picked = [r for r, a in zip(rows, alt, strict=True) if a == flag]
+        for label, got in summarize(picked, confidence, {k: SUMMARY_METRICS[k] for k in SPLIT_RATES}).items():
+            out[f"{label}, {driver}"] = got
+    return out
+
+
 def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95,
               metrics: Mapping[str, tuple[str, float]] | None = None) -> dict[str, dict[str, float | int]]:
     """Metric label -> {mean, ci_low, ci_high, n} over the episodes (or a demand run's seeds); metrics missing from
@@ -128,7 +150,8 @@ def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95,
 
     Rates (`RATE_METRICS`) get Wilson score intervals, every other metric a t-interval (module doc); every metric
     here is a count, distance, time, speed or share, so a t-interval over few values is cut at 0 (and a share's
-    at 100%), what the quantity can take."""
+    at 100%), what the quantity can take. The default metrics add `by_merger`'s where the rows mix merging
+    drivers."""
     out = {}
     for label, (column, scale) in (metrics or {**SUMMARY_METRICS, **FLOW_METRICS}).items():
         if not any(column in r for r in rows):
@@ -138,7 +161,7 @@ def summarize(rows: Sequence[Mapping[str, Any]], confidence: float = 0.95,
         low, high = ci.low * scale, ci.high * scale
         low, high = max(low, 0.0), min(high, 100.0) if "[%]" in label else high
         out[label] = Interval(ci.mean * scale, low, high, ci.n).as_dict()
-    return out
+    return out if metrics else {**out, **by_merger(rows, confidence)}
 
 
 def rate(rows: Sequence[Mapping[str, Any]], column: str, confidence: float = 0.95) -> dict[str, float | int]:
@@ -172,7 +195,9 @@ def interval_text(stats: Mapping[str, float] | None) -> str:
 def format_table(summaries: Mapping[str, Mapping[str, Mapping[str, float]]], episodes: Mapping[str, int],
                  markdown: bool = False, confidence: float = 0.95) -> str:
     """One row per metric, one column per run: 'mean [CI low, CI high]' (plain text or Markdown)."""
-    labels = [label for label in {**SUMMARY_METRICS, **FLOW_METRICS} if any(label in s for s in summaries.values())]
+    known = [split for label in {**SUMMARY_METRICS, **FLOW_METRICS}
+             for split in (label, *(f"{label}, {d}" for d in MERGER_DRIVERS if label in SPLIT_RATES))]
+    labels = [label for label in known if any(label in s for s in summaries.values())]
     header = [f"metric (mean [{confidence:.0%} CI])", *(f"{run} (n={episodes[run]})" for run in summaries)]
     rows = [[label, *(interval_text(s.get(label)) for s in summaries.values())] for label in labels]
     if markdown:

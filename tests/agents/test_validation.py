@@ -15,6 +15,7 @@ from agents.validation import (
     MOVING_SHARE,
     better,
     constant_action,
+    describe,
     meets_criterion,
     moving_threshold,
     summarize,
@@ -85,6 +86,22 @@ def test_summary_gives_cosim_evaluates_intervals() -> None:
     assert 0 < fig["crash_low"] < 25.0 < fig["crash_high"] < 100  # Wilson: inside [0, 100] even at n = 4
     assert fig["conflicts"] == pytest.approx(0.75) and fig["conflicts_low"] == 0.0  # a count's interval cut at 0
     assert fig["return"] == pytest.approx(3.0) and fig["return_low"] < 0  # a return may be negative: not cut
+
+
+
+def test_a_mix_of_merging_drivers_is_also_read_per_driver() -> None:
+    """Pooled, 2 crashes in 6; the impatient merging driver's episodes hold both."""
+    rows = [{"crashed": c, "merged": m, "conflicts": 0, "merger_distance": 100.0, "av_return": 1.0, "merger_alt": a}
+            for c, m, a in [(True, False, True), (True, True, True), (False, True, True), (False, True, False),
+                            (False, True, False), (False, False, False)]]
+    fig = summarize(rows)
+    assert fig["crash"] == pytest.approx(100 / 3)
+    assert fig["crash_merger_alt"] == pytest.approx(200 / 3) and fig["crash_merger"] == 0.0
+    assert fig["merge_merger_alt"] == pytest.approx(200 / 3) and fig["merge_merger"] == pytest.approx(200 / 3)
+    assert 0 < fig["crash_merger_alt_low"] < fig["crash_merger_alt"] < fig["crash_merger_alt_high"] <= 100
+    assert "merger_alt: crash 66.7%" in describe(fig) and "merger: crash 0.0%" in describe(fig)
+    # One driver only (every config but a mixed one): the pooled figures alone.
+    assert not any("merger" in k and "distance" not in k for k in summarize(rows[3:]))
 
 
 def test_validation_keeps_the_best_and_matches_an_evaluation_on_the_same_seeds(tmp_path: Path) -> None:

@@ -81,3 +81,16 @@ def test_t_intervals_stop_at_what_the_quantity_can_take() -> None:
     # A share over a demand run's seeds stops at 100%.
     share = summarize([{"merge_rate_pct": v} for v in (100.0, 100.0, 90.0)])["merge success, per merging vehicle [%]"]
     assert share["ci_high"] == 100.0 and 0.0 < share["ci_low"] < share["mean"]
+
+
+def test_a_mix_of_merging_drivers_gets_each_drivers_rates_beside_the_pooled_ones() -> None:
+    rows = [{"crashed": c, "merged": True, "merger_alt": a} for c, a in [(1, True), (0, True), (0, False), (0, False)]]
+    got = summarize(rows)
+    assert got["crash [%]"]["mean"] == 25.0
+    assert got["crash [%], merger_alt"]["mean"] == 50.0 and got["crash [%], merger_alt"]["n"] == 2
+    assert got["crash [%], merger"]["mean"] == 0.0 < got["crash [%], merger"]["ci_high"]  # Wilson, as pooled
+    table = format_table({"run": got}, {"run": 4}).splitlines()
+    names = [line.split("  ")[0] for line in table[2:]]
+    assert names.index("crash [%], merger") == names.index("crash [%]") + 1
+    # One driver: nothing split.
+    assert not [k for k in summarize(rows[2:]) if ", merger" in k]
