@@ -5,7 +5,8 @@ polite and the impatient merging vehicle, with and without the safety layer, bes
 
 Each (player, merging vehicle, shield) is one `cosim evaluate` into `OUT/<merger>_<shield>/<player>/` on the same
 evaluation seeds (10,000,000 on: disjoint from training and validation), resumable: a second call plays only the
-episodes missing. A run plays its `best.pt` (its best validation), as `cosim evaluate --run` does, on its own
+episodes missing. A run plays its `best.pt` (its best validation), as `cosim evaluate --run` does (`--last`: its
+final `policy.pt`, what its whole training made of it, as `cosim evaluate --last`), on its own
 config with only the merging vehicle (the run's own `merger:`, or `configs/impatient.yaml`'s, alone: a run trained on
 a mix of merging drivers, `configs/mixed_merger.yaml`, meets each in turn) and the shield changed.
 Writes `OUT/heldout.md` (per seed, pooled over the seeds of each angle, the claims' checks, the command, the wall
@@ -60,6 +61,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=300, help="episodes per player with the polite merger")
     parser.add_argument("--impatient-episodes", type=int, default=100, help="... with the impatient one (0: none)")
     parser.add_argument("--shield", action="store_true", help="also every player with av.shield=sumo")
+    parser.add_argument("--last", action="store_true", help="each run's final policy.pt, not its best.pt")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", type=Path, default=Path("runs/heldout"))
     args = parser.parse_args()
@@ -72,6 +74,7 @@ def main() -> None:
             raise CosimError(f"{run}: not a training run folder (no config.yaml)")
         cfg = load_config(run / "config.yaml")
         runs[run] = (float(cfg.reward.phi), int(cfg.train.seed))
+    played = {run: find_checkpoint(run, None, last=args.last) for run in runs}
     mergers = {"polite": args.episodes, **({"impatient": args.impatient_episodes} if args.impatient_episodes else {})}
     shields = ["none", "sumo"] if args.shield else ["none"]
     start = time.perf_counter()
@@ -81,7 +84,7 @@ def main() -> None:
             sets = [*merger_overrides(merger), f"av.shield={shield}"]
             # The rule plays on the first run's config: the runs differ in their angle and seed only.
             players: list[tuple[str, Any, Path]] = [("courteous", Baseline("courteous"), args.runs[0])]
-            players += [(run.name, TrainedPolicy(str(find_checkpoint(run, None))), run) for run in runs]
+            players += [(run.name, TrainedPolicy(str(played[run])), run) for run in runs]
             for name, policy, run in players:
                 out = args.out / f"{merger}_{shield}" / name
                 log.info("%s merger, shield %s: %s, %d episodes", merger, shield, name, episodes)
@@ -90,8 +93,11 @@ def main() -> None:
                 rows[(merger, shield, name)] = seed_rows(out, EVAL_SEED_START, episodes)
     wall = time.perf_counter() - start
     command = shlex.join(["python", *sys.argv])
-    lines = ["# The paper's claims on held-out episodes", "", f"`{command}`, {wall:.0f} s", ""]
-    result: dict[str, Any] = {"command": command, "wall_s": wall, "runs": {str(r): v for r, v in runs.items()}}
+    files = sorted({path.name for path in played.values()})
+    lines = ["# The paper's claims on held-out episodes", "",
+             f"`{command}`, {wall:.0f} s; each run plays its {' or '.join(files)}", ""]
+    result: dict[str, Any] = {"command": command, "wall_s": wall, "runs": {str(r): v for r, v in runs.items()},
+                              "played": {str(r): str(path) for r, path in played.items()}}
     for merger in mergers:
         for shield in shields:
             key = f"{merger}_{shield}"
