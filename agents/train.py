@@ -125,13 +125,19 @@ def episode_seed(seed: int, update: int, worker: int) -> int:
 # Keys a resume may change without --allow-config-change: how long and how a run is run, not what it learns; the
 # safety measures only count what happens (a run from before the section existed resumes without it).
 RESUMABLE = frozenset({"train.episodes", "train.budget_min", "train.checkpoint_every", "train.log_every",
-                       "train.eval_every", "train.eval_episodes",
+                       "train.eval_every", "train.eval_episodes", "train.init_from",
                        "train.log_every_s", "train.step_timeout", "train.max_restarts", "train.torch_threads",
                        "train.device", *(f"safety.{key}" for key in SafetyConfig.model_fields)})
 # What a run from before a key existed did, for the resume's comparison: it trained without action masks, and
 # without a safety layer.
 UNRECORDED = {"train.action_mask": False, "av.shield": "none", "train.segment_steps": 64, "train.segments": False,
               "demand.exit": "terminated"}
+
+
+def _from_config(exc: CheckpointError) -> CheckpointError:
+    """A start the config asked for (train.init_from) that cannot be had, with the way out."""
+    return CheckpointError(f"train.init_from: {exc}; set train.init_from=null to train from scratch, or pass "
+                           "--init-from POLICY")
 
 
 def run_config(cfg: Config, tc: TrainConfig) -> dict[str, Any]:
@@ -235,7 +241,8 @@ def train(cfg: Config, out_dir: Path, *, workers: int | None = None, episodes: i
           overrides: Sequence[str] = (), init_from: Path | None = None) -> TrainResult:
     """Train (or, with `resume`, continue training) the AVs of `cfg` into `out_dir` (see module doc); `overrides`:
     the command line's, recorded in the run's net.json; `init_from`: a new run starts from the networks of this
-    policy file or run (`agents.checkpoint.load_policy`) with a fresh optimizer, recorded in net.json."""
+    policy file or run (`agents.checkpoint.load_policy`) with a fresh optimizer, recorded in net.json (else from
+    the config's `train.init_from`, which a resume ignores)."""
     run = _Run.open(cfg, Path(out_dir), workers, episodes, budget_min, resume, device, env_factory,
                     allow_config_change, progress, Backend(backend, ray_address), overrides, init_from)
     try:
@@ -328,7 +335,16 @@ class _Run:
         if init_from is not None and resume:
             raise ConfigError(f"--init-from {init_from}: starts a new run; --resume continues one from its own "
                               "checkpoint: give one of the two")
-        start = load_policy(init_from) if init_from is not None else None  # a bad file fails here, at once
+        # The config's start (train.init_from) only where neither the command line nor a resume says otherwise.
+        configured = init_from is None and not resume and cfg.train.init_from is not None
+        if configured:
+            init_from = Path(cfg.train.init_from)
+        try:
+            start = load_policy(init_from) if init_from is not None else None  # a bad file fails here, at once
+        except CheckpointError as exc:
+            raise _from_config(exc) if configured else exc from None
+        if start is not None:
+            start[1]["configured"] = configured
         # The config on its net, resolved once: the demand's checks and the run's record read it.
         setting = Setting.of(cfg) if cfg.demand.enabled or env_factory is None else None
         tc = train_config(cfg)
@@ -470,8 +486,11 @@ class _Run:
     def _start_from(self, nets: dict[str, Any], meta: dict[str, Any]) -> None:
         """Every network of this run from `nets` (`load_policy`'s), which must fit the run's spec."""
         path = meta["path"]
-        check_spec({"spec": meta["spec"]}, {k: self.spec[k] for k in ("obs_shape", "n_actions", "feature_dim",
-                                                                      "head_hidden")}, Path(path))
+        try:
+            check_spec({"spec": meta["spec"]}, {k: self.spec[k] for k in ("obs_shape", "n_actions", "feature_dim",
+                                                                          "head_hidden")}, Path(path))
+        except CheckpointError as exc:
+            raise _from_config(exc) if meta.get("configured") else exc from None
         for name, net in zip(self.agents, self.policy.nets, strict=False):  # one per AV, or the shared one
             source = next(iter(nets.values())) if meta["spec"]["shared_policy"] else nets.get(name)
             if source is None:

@@ -209,7 +209,7 @@ def _train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--init-from", type=Path, default=None, metavar="POLICY",
                         help="start a new run from these weights (a run folder, its policy.pt or best.pt, a shipped "
                              "policy) with a fresh optimizer: fine-tuning, or going on from a committed float16 "
-                             "snapshot; not a resume (the run's counters start at 0)")
+                             "snapshot; not a resume (the run's counters start at 0); overrides train.init_from")
     parser.add_argument("--device", default=None, help="cpu | cuda | cuda:N (default: train.device)")
     _backend_arguments(parser)
 

@@ -32,12 +32,12 @@ COPIED = ("net.json", "config_changes.yaml", "updates.csv", "validation.csv")
 
 
 def portable_config(config: Path, out: Path) -> None:
-    """`config` (a run's config.yaml) written into `out` with `net.file` and `net.description` relative to `out`
-    (`cosim.config.load_config` reads a YAML file's net paths relative to its folder)."""
+    """`config` (a run's config.yaml) written into `out` with `net.file`, `net.description` and `train.init_from`
+    relative to `out` (`cosim.config.load_config` reads a YAML file's paths relative to its folder)."""
     data = yaml.safe_load(config.read_text(encoding="utf-8"))
-    for key in ("file", "description"):
-        if data["net"].get(key):
-            data["net"][key] = os.path.relpath(Path(data["net"][key]).resolve(), out.resolve())
+    for section, key in (("net", "file"), ("net", "description"), ("train", "init_from")):
+        if data.get(section, {}).get(key):
+            data[section][key] = os.path.relpath(Path(data[section][key]).resolve(), out.resolve())
     atomic_write_text(out / "config.yaml", yaml.safe_dump(data, sort_keys=False))
 
 

@@ -86,11 +86,12 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     if loaded is not None and not isinstance(loaded, dict):
         raise ConfigError(f"config file {path}: expected a mapping of sections at top level")
     data = loaded or {}
-    net = data.get("net")
-    if isinstance(net, dict):  # paths in a file are relative to that file
-        for key in ("file", "description"):
-            if isinstance(net.get(key), str):
-                net[key] = str(_resolve(net[key], path.resolve().parent))
+    # Paths in a file are relative to that file.
+    for section, keys in (("net", ("file", "description")), ("train", ("init_from",))):
+        part = data.get(section)
+        for key in keys if isinstance(part, dict) else ():
+            if isinstance(part.get(key), str):
+                part[key] = str(_resolve(part[key], path.resolve().parent))
     base = data.pop("base", None)
     if base is None:
         return data

@@ -556,6 +556,10 @@ class TrainConfig(_Section):
     episodes: Int = Field(30000, gt=0, description="episodes to train for, in total over the run (resume continues)")
     budget_min: Number = Field(
         0.0, ge=0, description="wall-clock training time over the run (resumes included); 0: no limit [min]")
+    init_from: StrictStr | None = Field(
+        None, description="a new run starts from the networks of this policy file or run folder (in a YAML file: "
+        "relative to that file), with a fresh optimizer; null: from scratch; `cosim train --init-from` overrides it, "
+        "and a resume goes on from its own checkpoint")
     gamma: Number = Field(0.95, ge=0, le=1, description="discount per decision step [-]")
     gae_lambda: Number = Field(0.95, ge=0, le=1, description="GAE lambda; 1 gives Monte-Carlo returns [-]")
     lr: Number = Field(2.5e-4, gt=0, description="learning rate at the start [-]")

@@ -2,6 +2,7 @@
 
 import csv
 import functools
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from agents.checkpoint import load_policy, read_checkpoint
+from agents.checkpoint import CheckpointError, load_policy, read_checkpoint
 from agents.collect import Segments
 from agents.config import train_config
 from agents.multiagent import Batch, MultiAgentPolicy
@@ -24,9 +25,10 @@ from cosim.workers import WorkerPool
 
 pytestmark = pytest.mark.sumo
 
-# Runs of 60 decisions (30 s warm-up, 30 s window) with many AVs, a small network.
+# Runs of 60 decisions (30 s warm-up, 30 s window) with many AVs, a small network from scratch.
 SHORT = {"demand.warmup": 30.0, "demand.window": 30.0, "demand.av_penetration": 0.3, "train.feature_dim": 16,
-         "train.head_hidden": 16, "train.precision": "float32", "train.seed": 4, "train.segment_steps": 16}
+         "train.head_hidden": 16, "train.precision": "float32", "train.seed": 4, "train.segment_steps": 16,
+         "train.init_from": None}
 
 
 def demand_cfg(**extra: object):
@@ -81,7 +83,8 @@ def test_segments_continue_each_run_and_bootstrap_the_agents_that_go_on() -> Non
 
 def test_cosim_train_under_demand_trains_runs_validates_resumes_and_evaluates(tmp_path: Path) -> None:
     run = tmp_path / "run"
-    args = ["train", "--config", "configs/demand.yaml", *(f"--set={k}={v}" for k, v in SHORT.items()),
+    args = ["train", "--config", "configs/demand.yaml", *(f"--set={k}={'null' if v is None else v}"
+                                                          for k, v in SHORT.items()),
             "--set=train.eval_every=2", "--set=train.eval_episodes=2", "--workers", "2", "--out", str(run)]
     assert main([*args, "--episodes", "2"]) == 0
     with (run / "episodes.csv").open() as f:
@@ -131,3 +134,19 @@ def test_what_demand_training_cannot_do_is_refused_in_one_line(tmp_path: Path, k
     with pytest.raises(ConfigError, match=says):
         train(demand_cfg(**{key: value}), tmp_path / "run", progress=False)
     assert not (tmp_path / "run").exists()
+
+
+def test_training_under_demand_starts_from_the_shipped_episode_policy_by_default(tmp_path: Path,
+                                                                                   caplog: pytest.LogCaptureFixture
+                                                                                   ) -> None:
+    default = {k: v for k, v in SHORT.items() if k not in ("train.feature_dim", "train.head_hidden", "train.init_from")}
+    cfg = load_config("configs/demand.yaml", default)
+    assert cfg.train.init_from == str(Path("policies/egoistic/best.pt").resolve())  # relative to the YAML file
+    with caplog.at_level("INFO", logger="agents.train"):
+        train(cfg, tmp_path / "run", episodes=1, workers=1, progress=False)
+    assert "starting from the networks of " + cfg.train.init_from in caplog.text
+    assert json.loads((tmp_path / "run" / "net.json").read_text())["init_from"] == cfg.train.init_from
+    # A network the shipped policy does not fit is one line naming the key and the way out; nothing is left behind.
+    with pytest.raises(CheckpointError, match=r"train\.init_from: .*incompatible feature_dim.*train\.init_from=null"):
+        train(demand_cfg(**{"train.init_from": cfg.train.init_from}), tmp_path / "small", progress=False)
+    assert not (tmp_path / "small").exists()
