@@ -23,6 +23,7 @@ from pathlib import Path
 import yaml
 
 from agents.checkpoint import BEST_NAME, POLICY_NAME, export_policy
+from cosim.config.loading import FILE_KEYS
 from cosim.errors import CosimError, run_script
 from cosim.files import atomic_write_text
 
@@ -32,10 +33,10 @@ COPIED = ("net.json", "config_changes.yaml", "updates.csv", "validation.csv")
 
 
 def portable_config(config: Path, out: Path) -> None:
-    """`config` (a run's config.yaml) written into `out` with `net.file`, `net.description` and `train.init_from`
-    relative to `out` (`cosim.config.load_config` reads a YAML file's paths relative to its folder)."""
+    """`config` (a run's config.yaml) written into `out` with the paths it names (`FILE_KEYS`: the net, the policy
+    it started from) relative to `out` (`cosim.config.load_config` reads them relative to the file's folder)."""
     data = yaml.safe_load(config.read_text(encoding="utf-8"))
-    for section, key in (("net", "file"), ("net", "description"), ("train", "init_from")):
+    for section, key in FILE_KEYS:
         if data.get(section, {}).get(key):
             data[section][key] = os.path.relpath(Path(data[section][key]).resolve(), out.resolve())
     atomic_write_text(out / "config.yaml", yaml.safe_dump(data, sort_keys=False))

@@ -77,6 +77,10 @@ def _plain(value: Any) -> Any:
     return value
 
 
+# The keys that name a file: in a YAML file, relative to that file (scripts/snapshot_run.py writes them so).
+FILE_KEYS = (("net", "file"), ("net", "description"), ("train", "init_from"))
+
+
 def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     """A YAML config as a dict; `base: other.yaml` (relative to this file) is read first and this file's
     keys are merged over it, so experiments state only what differs."""
@@ -86,12 +90,10 @@ def _read_yaml(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     if loaded is not None and not isinstance(loaded, dict):
         raise ConfigError(f"config file {path}: expected a mapping of sections at top level")
     data = loaded or {}
-    # Paths in a file are relative to that file.
-    for section, keys in (("net", ("file", "description")), ("train", ("init_from",))):
+    for section, key in FILE_KEYS:  # paths in a file are relative to that file
         part = data.get(section)
-        for key in keys if isinstance(part, dict) else ():
-            if isinstance(part.get(key), str):
-                part[key] = str(_resolve(part[key], path.resolve().parent))
+        if isinstance(part, dict) and isinstance(part.get(key), str):
+            part[key] = str(_resolve(part[key], path.resolve().parent))
     base = data.pop("base", None)
     if base is None:
         return data

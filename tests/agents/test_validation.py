@@ -88,7 +88,6 @@ def test_summary_gives_cosim_evaluates_intervals() -> None:
     assert fig["return"] == pytest.approx(3.0) and fig["return_low"] < 0  # a return may be negative: not cut
 
 
-
 def test_a_mix_of_merging_drivers_is_also_read_per_driver() -> None:
     """Pooled, 2 crashes in 6; the impatient merging driver's episodes hold both."""
     rows = [{"crashed": c, "merged": m, "conflicts": 0, "merger_distance": 100.0, "av_return": 1.0, "merger_alt": a}
