@@ -90,10 +90,11 @@ def save_policy(path: Path, payload: dict[str, Any], **extra: Any) -> None:
                               f"previous one is unchanged") from None
 
 
-def export_policy(src: Path, dst: Path, dtype: torch.dtype = torch.float16) -> None:
+def export_policy(src: Path, dst: Path, dtype: torch.dtype = torch.float16, **changed: Any) -> None:
     """A policy file (`policy.pt`, `best.pt`) or checkpoint's networks as a policy file at `dst` with its weights in
     `dtype` (float16: half the size, for a repository; `load_policy` loads them into float32 networks), written
-    atomically; the spec, counters, config and validation figures go along."""
+    atomically; the spec, counters, config and validation figures go along, those named in `changed` (a run joined
+    onto the snapshot it continues: its counters) replaced."""
     payload = torch.load(src, map_location="cpu", weights_only=True)
     if payload.get("format") == FORMAT:
         payload = policy_payload(payload)
@@ -101,7 +102,7 @@ def export_policy(src: Path, dst: Path, dtype: torch.dtype = torch.float16) -> N
         raise CheckpointError(f"{src}: neither a {POLICY_FORMAT} file nor a {FORMAT} checkpoint")
     nets = [{k: v.to(dtype) if v.is_floating_point() else v for k, v in sd.items()} for sd in payload["nets"]]
     with atomic_path(dst) as tmp:
-        _save({**payload, "nets": nets, "dtype": str(dtype).removeprefix("torch.")}, tmp)
+        _save({**payload, **changed, "nets": nets, "dtype": str(dtype).removeprefix("torch.")}, tmp)
 
 
 def _save(obj: Any, path: Path) -> None:

@@ -145,11 +145,12 @@ def run_config(cfg: Config, tc: TrainConfig) -> dict[str, Any]:
     return {**cfg.to_dict(), "train": tc.model_dump()}
 
 
-def _flat(data: Any, prefix: str = "") -> dict[str, Any]:
+def flat_keys(data: Any, prefix: str = "") -> dict[str, Any]:
+    """A config's nested sections as one mapping of dotted keys ("train.seed") to values."""
     if isinstance(data, dict):
         out: dict[str, Any] = {}
         for k, v in data.items():
-            out.update(_flat(v, f"{prefix}{k}."))
+            out.update(flat_keys(v, f"{prefix}{k}."))
         return out
     return {prefix[:-1]: data}
 
@@ -166,8 +167,8 @@ def config_changes(saved: Path, new: dict[str, Any]) -> dict[str, tuple[Any, Any
         raise ConfigError(f"--resume: {exc}; {hint}") from None
     if not isinstance(loaded, dict):
         raise ConfigError(f"--resume: {saved}: not a mapping of config sections; {hint}")
-    old = {**UNRECORDED, **_flat(loaded)}
-    now = _flat(yaml.safe_load(yaml.safe_dump(new)))  # the same YAML types on both sides
+    old = {**UNRECORDED, **flat_keys(loaded)}
+    now = flat_keys(yaml.safe_load(yaml.safe_dump(new)))  # the same YAML types on both sides
     return {k: (old.get(k), now.get(k)) for k in sorted(set(old) | set(now))
             if old.get(k) != now.get(k) and k not in RESUMABLE}
 

@@ -171,13 +171,19 @@ def _is_int(text: str) -> bool:
 
 
 def write_csv(path: Path, rows: Sequence[Mapping[str, Any]], fields: Sequence[str] | None = None) -> None:
-    """Write `rows` under the header `fields` (default: the keys in order of first appearance), atomically."""
+    """Write `rows` under the header `fields` (default: the keys in order of first appearance), atomically;
+    gzipped where the name ends in .gz, as `read_csv` reads it."""
     fields = list(fields) if fields is not None else list(dict.fromkeys(k for r in rows for k in r))
     buf = io.StringIO()
     writer = csv.DictWriter(buf, fieldnames=fields)
     writer.writeheader()
     writer.writerows(rows)
-    atomic_write_text(Path(path), buf.getvalue())
+    path = Path(path)
+    if path.suffix != ".gz":
+        atomic_write_text(path, buf.getvalue())
+        return
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(gzip.compress(buf.getvalue().encode("utf-8")))
 
 
 def cell_float(value: Any) -> float:

@@ -2,34 +2,56 @@
 and to go on from it, without the resumable checkpoint (optimizer state, tens of MB).
 
     python scripts/snapshot_run.py runs/learner/base_pi4_s1 --out results/learner/base_pi4_s1
+    python scripts/snapshot_run.py runs/learner/mix_phi0_s16b --continues results/learner/tuning/mix_phi0_s16 \
+        --out results/learner/tuning/mix15k_phi0_s16
 
 Copies `config.yaml` (its net's paths made relative to OUT, so that a clone of the repository anywhere finds the net
 the run trained on: a run writes them absolute), `net.json`, `config_changes.yaml`, `updates.csv`, `validation.csv`
 and `episodes.csv` (gzipped), and writes `policy.pt` and `best.pt` with float16 weights
 (`agents.checkpoint.export_policy`). Where the
 run folder itself is gone, `cosim train --init-from OUT/policy.pt` is not a resume: it starts a new run from these
-weights with a fresh optimizer (say so beside any figure).
+weights with a fresh optimizer and value normaliser (say so beside any figure).
+
+`--continues START` snapshots such a run as the continuation of START (the snapshot whose `policy.pt` it started
+from; its config the same but for `train.seed`, which a continuation changes so as not to replay START's training
+episodes, and the keys a resume may change): START's logs come first, RUN's follow with their counts (updates,
+episodes, samples, training time) running on from START's, the validation log's `best` marks are redone over both
+parts by training's rule (`agents.validation.better`), `best.pt` is the better part's, the policy files' counters
+count both parts, and `net.json` says where the parts meet (`continues`). Validation curves, the episodes to the
+criterion and held-out evaluations then read the snapshot as one run.
 """
 
 from __future__ import annotations
 
 import argparse
 import gzip
+import json
 import logging
 import os
 import shutil
 from pathlib import Path
+from typing import Any
 
 import yaml
 
-from agents.checkpoint import BEST_NAME, POLICY_NAME, export_policy
+from agents.checkpoint import BEST_NAME, POLICY_NAME, export_policy, load_policy
+from agents.train import RESUMABLE, flat_keys
+from agents.validation import better, is_demand
+from cosim.config import load_config
 from cosim.config.loading import FILE_KEYS
 from cosim.errors import CosimError, run_script
-from cosim.files import atomic_write_text
+from cosim.files import VALIDATION_LOG, atomic_write_text, cell_float, read_csv, write_csv, write_json
 
 log = logging.getLogger("snapshot")
 
 COPIED = ("net.json", "config_changes.yaml", "updates.csv", "validation.csv")
+# What a continuation may change besides what a resume may: the seed of its training episodes.
+CONTINUATION_KEYS = RESUMABLE | {"train.seed"}
+# The columns of each log that count from the run's start, and the counter of the policy file each continues.
+RUNNING_ON = {"updates.csv": {"update": "updates", "episodes": "episodes", "samples": "samples", "train_s": "train_s"},
+              VALIDATION_LOG: {"update": "updates", "episodes": "episodes", "samples": "samples",
+                               "train_s": "train_s"},
+              "episodes.csv.gz": {"episode": "episodes", "update": "updates"}}
 
 
 def portable_config(config: Path, out: Path) -> None:
@@ -42,14 +64,93 @@ def portable_config(config: Path, out: Path) -> None:
     atomic_write_text(out / "config.yaml", yaml.safe_dump(data, sort_keys=False))
 
 
+def start_counters(run: Path, start: Path) -> dict[str, float]:
+    """The counters of `start`'s policy file, once `run` is known to continue it (module doc); `CosimError` naming
+    what differs otherwise."""
+    record = json.loads((run / "net.json").read_text(encoding="utf-8")) if (run / "net.json").is_file() else {}
+    began = record.get("init_from")
+    if began is None or Path(began).resolve() != (start / POLICY_NAME).resolve():
+        raise CosimError(f"--continues {start}: {run} started from {began or 'scratch'}, not from "
+                         f"{start / POLICY_NAME}; pass the snapshot it was trained on from (cosim train --init-from)")
+    old, new = (flat_keys(load_config(folder / "config.yaml").to_dict()) for folder in (start, run))
+    changed = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k) and k not in CONTINUATION_KEYS)
+    if changed:
+        raise CosimError(f"--continues {start}: {run} trains another config ({', '.join(changed)} differ); a "
+                         f"continuation may change only train.seed and what a resume may")
+    if is_demand(read_csv(start / VALIDATION_LOG)):
+        raise CosimError(f"--continues {start}: runs under demand are not joined (their best.pt also weighs the flow "
+                         "offered); snapshot the run alone")
+    return {k: float(v) for k, v in load_policy(start / POLICY_NAME)[1]["counters"].items()}
+
+
+def _joined(first: list[dict[str, Any]], then: list[dict[str, Any]], columns: dict[str, str],
+            counters: dict[str, float]) -> list[dict[str, Any]]:
+    """`first`'s rows up to `counters` (a snapshot's logs may run past its policy file), then `then`'s with the
+    `columns` counting on from `counters`."""
+    kept = [r for r in first if all(cell_float(r[c]) <= counters[k] for c, k in columns.items()
+                                    if c in r and k != "train_s")]  # time is no count: validation adds to it
+    moved = [{**r, **{c: _plus(r[c], counters[k]) for c, k in columns.items() if c in r}} for r in then]
+    return kept + moved
+
+
+def _plus(cell: str, offset: float) -> int | float:
+    value = cell_float(cell) + offset
+    return int(value) if value.is_integer() else value
+
+
+def _rebest(rows: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """Mark the rows that training's rule would have kept as best.pt over both parts; the last such row."""
+    best = None
+    for row in rows:
+        fig = {k: cell_float(v) for k, v in row.items()}
+        row["best"] = int(better(fig, best))
+        if row["best"]:
+            best = fig
+    return best
+
+
+def join(run: Path, start: Path, out: Path) -> None:
+    """OUT (RUN's snapshot) as the continuation of `start` (module doc)."""
+    counters = start_counters(run, start)
+    best = None
+    for name, columns in RUNNING_ON.items():
+        theirs = start / name if (start / name).is_file() else start / name.removesuffix(".gz")  # a run folder's
+        before, ours = read_csv(theirs), read_csv(out / name)
+        rows = _joined(before, ours, columns, counters)
+        if name == VALIDATION_LOG:
+            best = _rebest(rows)
+        # A newer part's log may have columns an older one lacks (left empty there).
+        write_csv(out / name, rows, list(dict.fromkeys(k for r in (ours[:1] + before[:1]) for k in r)))
+    running = {k: counters[k] + v for k, v in load_policy(run / POLICY_NAME)[1]["counters"].items() if k in counters}
+    export_policy(run / POLICY_NAME, out / POLICY_NAME, counters=_counts(running))
+    if best is not None and best["episodes"] <= counters["episodes"]:  # START's best.pt stays the best
+        export_policy(start / BEST_NAME, out / BEST_NAME)
+    elif best is not None:
+        ran = {k: counters[k] + v for k, v in load_policy(run / BEST_NAME)[1]["counters"].items() if k in counters}
+        export_policy(run / BEST_NAME, out / BEST_NAME, counters=_counts(ran), validation=best)
+    record = json.loads((out / "net.json").read_text(encoding="utf-8"))
+    record["continues"] = {"snapshot": os.path.relpath(start.resolve(), out.resolve()),
+                           "at": _counts(counters), "train_seed": load_config(start / "config.yaml").train.seed,
+                           "fresh": "optimizer and value normaliser (a start from a policy file, not a resume)"}
+    write_json(out / "net.json", record)
+
+
+def _counts(counters: dict[str, float]) -> dict[str, int | float]:
+    return {k: v if k == "train_s" else int(v) for k, v in counters.items()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run", type=Path, help="training run folder")
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--continues", type=Path, metavar="START",
+                        help="the snapshot whose policy.pt RUN started from (cosim train --init-from): join the two")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     if not (args.run / POLICY_NAME).is_file():
         raise CosimError(f"{args.run}: no {POLICY_NAME}; not a training run folder, or one without a checkpoint yet")
+    if args.continues is not None:
+        start_counters(args.run, args.continues)  # refused before anything is written
     args.out.mkdir(parents=True, exist_ok=True)
     portable_config(args.run / "config.yaml", args.out)
     for name in COPIED:
@@ -60,6 +161,8 @@ def main() -> None:
     for name in (POLICY_NAME, BEST_NAME):
         if (args.run / name).is_file():
             export_policy(args.run / name, args.out / name)
+    if args.continues is not None:
+        join(args.run, args.continues, args.out)
     log.info("wrote %s", args.out)
 
 
