@@ -12,6 +12,7 @@ with a band across them), a star where each run first met the criterion.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 import shlex
@@ -19,13 +20,14 @@ import sys
 from pathlib import Path
 
 from agents.config import train_config
+from agents.train import RESUMABLE
 from agents.validation import CRASH_HIGH_MAX, CRASH_MAX, MERGE_GAP, meets_criterion
 from cosim.config import DEFAULT_CONFIG, VALIDATION_SEED_START, Config, load_config
 from cosim.environment.reward import TERMS
 from cosim.errors import CosimError, run_script
 from cosim.evaluation import plots
 from cosim.evaluation.runner import Baseline, evaluate
-from cosim.files import VALIDATION_LOG, atomic_write_text, read_csv, write_json
+from cosim.files import VALIDATION_LOG, atomic_write_text, cell_float, read_csv, write_json
 
 log = logging.getLogger("criterion")
 
@@ -49,10 +51,10 @@ def main() -> None:
     for run in runs:
         cfg = load_config(run / "config.yaml")
         phi = float(cfg.reward.phi)
-        validations = [{k: float(v) for k, v in r.items()} for r in read_csv(run / VALIDATION_LOG)]
+        validations = [{k: cell_float(v) for k, v in r.items()} for r in read_csv(run / VALIDATION_LOG)]
         met = next((v for v in validations if meets_criterion(v, phi, reference)), None)
         last = validations[-1] if validations else {}
-        rows.append({"run": str(run), "phi": phi, "seed": cfg.train.seed, "validations": len(validations),
+        rows.append({"run": str(run), "phi": phi, "seed": _seeds(run, cfg), "validations": len(validations),
                      "differs": _differs(cfg, default), "curve": [(v["episodes"], v["crash"]) for v in validations],
                      "last_validated": last.get("episodes", 0), "met_at_episodes": met and met["episodes"],
                      "met_at_train_s": met and met["train_s"], "best_crash": min((v["crash"] for v in validations),
@@ -86,10 +88,18 @@ def main() -> None:
     print("\n".join(lines))
 
 
+def _seeds(run: Path, cfg: Config) -> str:
+    """The run's training seed; a run joined onto the one it continues (scripts/snapshot_run.py --continues) has
+    two."""
+    record = json.loads((run / "net.json").read_text(encoding="utf-8")) if (run / "net.json").is_file() else {}
+    first = record.get("continues", {}).get("train_seed")
+    return f"{cfg.train.seed}" if first is None else f"{first}, then {cfg.train.seed}"
+
+
 def _differs(cfg: Config, default: Config) -> str:
     """The run's training and reward settings that are not the default config's (the seed, the SVO angle and the
     bookkeeping keys aside), as KEY=VALUE."""
-    ignored = {"seed", "eval_every", "eval_episodes", "torch_threads", "episodes", "checkpoint_every", "log_every"}
+    ignored = {"seed", *(k.removeprefix("train.") for k in RESUMABLE)}  # what a resume may change: how long, how
     mine, theirs = train_config(cfg).model_dump(), train_config(default).model_dump()
     out = [f"train.{k}={v}" for k, v in mine.items() if k not in ignored and theirs.get(k) != v]
     out += [f"reward.weights.{k}={getattr(cfg.reward.weights, k)}" for k in TERMS
