@@ -31,6 +31,7 @@ rng {python, numpy, torch}, train (TrainConfig as a dict), config (Config.to_dic
 
 from __future__ import annotations
 
+import json
 import random
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -322,6 +323,14 @@ def describe_checkpoint(path: Path) -> str:
         return what
     return (f"{what}, the best validation of its run ({int(row['episodes_validated'])} greedy "
             f"{'runs' if 'collisions' in row else 'episodes'} on the validation seeds: {describe(row)})")
+
+
+def first_seed(run: Path) -> int | None:
+    """The training seed of the part a run folder continues, where it was joined onto it (scripts/snapshot_run.py
+    --continues: the continuation trains with a seed of its own); None for a run of one part."""
+    record = json.loads((run / "net.json").read_text(encoding="utf-8")) if (run / "net.json").is_file() else {}
+    seed = record.get("continues", {}).get("train_seed")
+    return None if seed is None else int(seed)
 
 
 def find_checkpoint(run: Path | None, checkpoint: Path | None, last: bool = False) -> Path:

@@ -12,13 +12,13 @@ with a band across them), a star where each run first met the criterion.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import shlex
 import sys
 from pathlib import Path
 
+from agents.checkpoint import first_seed
 from agents.config import train_config
 from agents.train import RESUMABLE
 from agents.validation import CRASH_HIGH_MAX, CRASH_MAX, MERGE_GAP, meets_criterion
@@ -91,8 +91,7 @@ def main() -> None:
 def _seeds(run: Path, cfg: Config) -> str:
     """The run's training seed; a run joined onto the one it continues (scripts/snapshot_run.py --continues) has
     two."""
-    record = json.loads((run / "net.json").read_text(encoding="utf-8")) if (run / "net.json").is_file() else {}
-    first = record.get("continues", {}).get("train_seed")
+    first = first_seed(run)
     return f"{cfg.train.seed}" if first is None else f"{first}, then {cfg.train.seed}"
 
 

@@ -66,14 +66,15 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/heldout"))
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
-    from agents.checkpoint import TrainedPolicy, find_checkpoint  # torch only here
+    from agents.checkpoint import TrainedPolicy, find_checkpoint, first_seed  # torch only here
 
     runs = {}
     for run in args.runs:
         if not (run / "config.yaml").is_file():
             raise CosimError(f"{run}: not a training run folder (no config.yaml)")
         cfg = load_config(run / "config.yaml")
-        runs[run] = (float(cfg.reward.phi), int(cfg.train.seed))
+        first = first_seed(run)  # a run joined onto the one it continues goes by its first part's seed
+        runs[run] = (float(cfg.reward.phi), int(cfg.train.seed) if first is None else first)
     played = {run: find_checkpoint(run, None, last=args.last) for run in runs}
     mergers = {"polite": args.episodes, **({"impatient": args.impatient_episodes} if args.impatient_episodes else {})}
     shields = ["none", "sumo"] if args.shield else ["none"]

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from agents.checkpoint import BEST_NAME, POLICY_NAME, load_policy
+from agents.checkpoint import BEST_NAME, POLICY_NAME, first_seed, load_policy
 from agents.train import train
 from agents.validation import better
 from cosim.config import load_config
@@ -75,6 +75,7 @@ def test_a_run_continued_from_a_snapshot_joins_it_as_one_run(tmp_path: Path, mon
     assert load_policy(joined / POLICY_NAME)[1]["counters"]["episodes"] == 16
     record = json.loads((joined / "net.json").read_text())["continues"]
     assert record["at"]["episodes"] == 8 and record["train_seed"] == 3
+    assert first_seed(joined) == 3 and first_seed(tmp_path / "then") is None  # held out, it goes by seed 3
     assert (joined / record["snapshot"]).resolve() == (tmp_path / "start").resolve()
 
     # Refused, before anything is written: another snapshot than the start, and a run of another config.
