@@ -50,6 +50,7 @@ from cosim.files import atomic_path, file_sha256
 FORMAT, VERSION = "cosim-ma-a2c", 2
 POLICY_FORMAT = "cosim-policy"
 CHECKPOINT_NAME = "checkpoint.pt"  # everything a resume needs
+NET_RECORD = "net.json"  # the net a run trains on (path, sha256, summary) and the scenario resolved on it
 POLICY_NAME = "policy.pt"  # the trained networks alone, for evaluation and sharing
 BEST_NAME = "best.pt"  # a policy file: the networks that did best in validation (agents.validation)
 
@@ -325,11 +326,16 @@ def describe_checkpoint(path: Path) -> str:
             f"{'runs' if 'collisions' in row else 'episodes'} on the validation seeds: {describe(row)})")
 
 
+def run_record(run: Path) -> dict[str, Any]:
+    """A run folder's `NET_RECORD` (empty where it has none)."""
+    path = Path(run) / NET_RECORD
+    return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else {}
+
+
 def first_seed(run: Path) -> int | None:
-    """The training seed of the part a run folder continues, where it was joined onto it (scripts/snapshot_run.py
-    --continues: the continuation trains with a seed of its own); None for a run of one part."""
-    record = json.loads((run / "net.json").read_text(encoding="utf-8")) if (run / "net.json").is_file() else {}
-    seed = record.get("continues", {}).get("train_seed")
+    """The training seed of a run folder's first part, where it was joined onto the run it continues
+    (scripts/snapshot_run.py --continues: a continuation trains with a seed of its own); None for a run of one part."""
+    seed = run_record(run).get("continues", {}).get("train_seed")
     return None if seed is None else int(seed)
 
 

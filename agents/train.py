@@ -53,6 +53,7 @@ from tqdm import tqdm
 from agents.checkpoint import (
     BEST_NAME,
     CHECKPOINT_NAME,
+    NET_RECORD,
     POLICY_NAME,
     CheckpointError,
     check_spec,
@@ -90,7 +91,6 @@ log = logging.getLogger(__name__)
 TORCH_THREADS = torch.get_num_threads()  # torch's default, before any run of this process set its own
 # validated: the episodes trained when the last validation ran (train.eval_every)
 COUNTERS = ("episodes", "updates", "samples", "restarts", "lost_episodes", "validated")
-NET_RECORD = "net.json"  # the net a run trains on (path, sha256, summary) and the scenario resolved on it
 # The env's summary keys an episodes.csv row carries: of an episode, and of a run under demand.
 EPISODE_KEYS = ("crashed", "merged", "mean_distance", "merger_distance", "length", "cause_av", "cause_hv_into_av",
                 "cause_merger", "merger_alt")

@@ -183,7 +183,7 @@ def write_csv(path: Path, rows: Sequence[Mapping[str, Any]], fields: Sequence[st
         atomic_write_text(path, buf.getvalue())
         return
     with atomic_path(path) as tmp:
-        tmp.write_bytes(gzip.compress(buf.getvalue().encode("utf-8")))
+        tmp.write_bytes(gzip.compress(buf.getvalue().encode("utf-8"), mtime=0))  # the same rows, the same bytes
 
 
 def cell_float(value: Any) -> float:

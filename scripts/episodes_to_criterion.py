@@ -54,7 +54,8 @@ def main() -> None:
         validations = [{k: cell_float(v) for k, v in r.items()} for r in read_csv(run / VALIDATION_LOG)]
         met = next((v for v in validations if meets_criterion(v, phi, reference)), None)
         last = validations[-1] if validations else {}
-        rows.append({"run": str(run), "phi": phi, "seed": _seeds(run, cfg), "validations": len(validations),
+        rows.append({"run": str(run), "phi": phi, "seed": cfg.train.seed, "first_seed": first_seed(run),
+                     "validations": len(validations),
                      "differs": _differs(cfg, default), "curve": [(v["episodes"], v["crash"]) for v in validations],
                      "last_validated": last.get("episodes", 0), "met_at_episodes": met and met["episodes"],
                      "met_at_train_s": met and met["train_s"], "best_crash": min((v["crash"] for v in validations),
@@ -71,7 +72,8 @@ def main() -> None:
         met = f"not by {r['last_validated']:,.0f}" if r["met_at_episodes"] is None else f"{r['met_at_episodes']:,.0f}"
         hours = "" if r["met_at_train_s"] is None else f"{r['met_at_train_s'] / 3600:.2f}"
         curve = ", ".join(f"{c:.1f} ({e:,.0f})" for e, c in r["curve"])
-        lines.append(f"| {r['run']} | {r['phi']:.4f} | {r['seed']} | {r['differs'] or 'nothing'} | {curve} | {met} | "
+        seeds = r["seed"] if r["first_seed"] is None else f"{r['first_seed']}, then {r['seed']}"  # a joined run's
+        lines.append(f"| {r['run']} | {r['phi']:.4f} | {seeds} | {r['differs'] or 'nothing'} | {curve} | {met} | "
                      f"{hours} |")
     logs = [next((p for p in (run / "episodes.csv", run / "episodes.csv.gz") if p.is_file()), run / "episodes.csv")
             for run in runs]  # a run kept in results/ has its log gzipped (scripts/snapshot_run.py)
@@ -88,17 +90,11 @@ def main() -> None:
     print("\n".join(lines))
 
 
-def _seeds(run: Path, cfg: Config) -> str:
-    """The run's training seed; a run joined onto the one it continues (scripts/snapshot_run.py --continues) has
-    two."""
-    first = first_seed(run)
-    return f"{cfg.train.seed}" if first is None else f"{first}, then {cfg.train.seed}"
-
-
 def _differs(cfg: Config, default: Config) -> str:
     """The run's training and reward settings that are not the default config's (the seed, the SVO angle and the
     bookkeeping keys aside), as KEY=VALUE."""
-    ignored = {"seed", *(k.removeprefix("train.") for k in RESUMABLE)}  # what a resume may change: how long, how
+    # What a resume may change is how long and how a run ran, not what it learned with; where it started is.
+    ignored = {"seed", *(k.removeprefix("train.") for k in RESUMABLE)} - {"init_from"}
     mine, theirs = train_config(cfg).model_dump(), train_config(default).model_dump()
     out = [f"train.{k}={v}" for k, v in mine.items() if k not in ignored and theirs.get(k) != v]
     out += [f"reward.weights.{k}={getattr(cfg.reward.weights, k)}" for k in TERMS

@@ -17,15 +17,16 @@ from; its config the same but for `train.seed`, which a continuation changes so 
 episodes, and the keys a resume may change): START's logs come first, RUN's follow with their counts (updates,
 episodes, samples, training time) running on from START's, the validation log's `best` marks are redone over both
 parts by training's rule (`agents.validation.better`), `best.pt` is the better part's, the policy files' counters
-count both parts, and `net.json` says where the parts meet (`continues`). Validation curves, the episodes to the
-criterion and held-out evaluations then read the snapshot as one run.
+count both parts, and `net.json` says where the parts meet (`continues`; a third part joined onto a joined snapshot
+keeps the record of the join before it, and the first part's training seed). Validation curves, the episodes to
+the criterion and held-out evaluations then read the snapshot as one run. Runs under demand are not joined (their
+`best.pt` also weighs the flow offered).
 """
 
 from __future__ import annotations
 
 import argparse
 import gzip
-import json
 import logging
 import os
 import shutil
@@ -34,9 +35,9 @@ from typing import Any
 
 import yaml
 
-from agents.checkpoint import BEST_NAME, POLICY_NAME, export_policy, load_policy
+from agents.checkpoint import BEST_NAME, NET_RECORD, POLICY_NAME, export_policy, first_seed, load_policy, run_record
 from agents.train import RESUMABLE, flat_keys
-from agents.validation import better, is_demand
+from agents.validation import better
 from cosim.config import load_config
 from cosim.config.loading import FILE_KEYS
 from cosim.errors import CosimError, run_script
@@ -44,13 +45,12 @@ from cosim.files import VALIDATION_LOG, atomic_write_text, cell_float, read_csv,
 
 log = logging.getLogger("snapshot")
 
-COPIED = ("net.json", "config_changes.yaml", "updates.csv", "validation.csv")
+COPIED = (NET_RECORD, "config_changes.yaml", "updates.csv", VALIDATION_LOG)
 # What a continuation may change besides what a resume may: the seed of its training episodes.
 CONTINUATION_KEYS = RESUMABLE | {"train.seed"}
-# The columns of each log that count from the run's start, and the counter of the policy file each continues.
-RUNNING_ON = {"updates.csv": {"update": "updates", "episodes": "episodes", "samples": "samples", "train_s": "train_s"},
-              VALIDATION_LOG: {"update": "updates", "episodes": "episodes", "samples": "samples",
-                               "train_s": "train_s"},
+# The columns of each log that count from the run's start, and the policy file's counter each continues.
+_COUNTS = {"update": "updates", "episodes": "episodes", "samples": "samples", "train_s": "train_s"}
+RUNNING_ON = {"updates.csv": {**_COUNTS, "restarts": "restarts"}, VALIDATION_LOG: _COUNTS,
               "episodes.csv.gz": {"episode": "episodes", "update": "updates"}}
 
 
@@ -65,21 +65,25 @@ def portable_config(config: Path, out: Path) -> None:
 
 
 def start_counters(run: Path, start: Path) -> dict[str, float]:
-    """The counters of `start`'s policy file, once `run` is known to continue it (module doc); `CosimError` naming
-    what differs otherwise."""
-    record = json.loads((run / "net.json").read_text(encoding="utf-8")) if (run / "net.json").is_file() else {}
-    began = record.get("init_from")
+    """The counters of `start`'s policy file, once `run` is known to continue it (module doc) and both parts to have
+    what the join takes; `CosimError` naming what is wrong otherwise."""
+    began = run_record(run).get("init_from")
     if began is None or Path(began).resolve() != (start / POLICY_NAME).resolve():
         raise CosimError(f"--continues {start}: {run} started from {began or 'scratch'}, not from "
-                         f"{start / POLICY_NAME}; pass the snapshot it was trained on from (cosim train --init-from)")
-    old, new = (flat_keys(load_config(folder / "config.yaml").to_dict()) for folder in (start, run))
+                         f"{start / POLICY_NAME}; pass the snapshot it was trained on from (cosim train --init-from), "
+                         f"and run this in the folder training ran in ({NET_RECORD} keeps the path as it was given)")
+    first = load_config(start / "config.yaml")
+    old, new = (flat_keys(cfg.to_dict()) for cfg in (first, load_config(run / "config.yaml")))
     changed = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k) and k not in CONTINUATION_KEYS)
     if changed:
         raise CosimError(f"--continues {start}: {run} trains another config ({', '.join(changed)} differ); a "
                          f"continuation may change only train.seed and what a resume may")
-    if is_demand(read_csv(start / VALIDATION_LOG)):
+    if first.demand.enabled:
         raise CosimError(f"--continues {start}: runs under demand are not joined (their best.pt also weighs the flow "
                          "offered); snapshot the run alone")
+    for folder in (start, run):
+        if read_csv(folder / VALIDATION_LOG) and not (folder / BEST_NAME).is_file():
+            raise CosimError(f"--continues {start}: {folder} has validations but no {BEST_NAME} to join")
     return {k: float(v) for k, v in load_policy(start / POLICY_NAME)[1]["counters"].items()}
 
 
@@ -94,24 +98,26 @@ def _joined(first: list[dict[str, Any]], then: list[dict[str, Any]], columns: di
 
 
 def _plus(cell: str, offset: float) -> int | float:
+    """A count of the continuation counted on from its start's (an integer stays one)."""
     value = cell_float(cell) + offset
     return int(value) if value.is_integer() else value
 
 
 def _rebest(rows: list[dict[str, Any]]) -> dict[str, Any] | None:
-    """Mark the rows that training's rule would have kept as best.pt over both parts; the last such row."""
+    """Mark the rows that training's rule would have kept as best.pt over both parts; the last such row, as
+    training keeps it in best.pt (its counts integers)."""
     best = None
     for row in rows:
         fig = {k: cell_float(v) for k, v in row.items()}
         row["best"] = int(better(fig, best))
         if row["best"]:
-            best = fig
+            best = {**fig, **{k: int(fig[k]) for k in ("update", "episodes", "samples")}, "best": 1}
     return best
 
 
-def join(run: Path, start: Path, out: Path) -> None:
-    """OUT (RUN's snapshot) as the continuation of `start` (module doc)."""
-    counters = start_counters(run, start)
+def join(run: Path, start: Path, out: Path, counters: dict[str, float]) -> None:
+    """OUT (RUN's snapshot) as the continuation of `start`, whose policy file's `counters` RUN began from (module
+    doc)."""
     best = None
     for name, columns in RUNNING_ON.items():
         theirs = start / name if (start / name).is_file() else start / name.removesuffix(".gz")  # a run folder's
@@ -121,22 +127,48 @@ def join(run: Path, start: Path, out: Path) -> None:
             best = _rebest(rows)
         # A newer part's log may have columns an older one lacks (left empty there).
         write_csv(out / name, rows, list(dict.fromkeys(k for r in (ours[:1] + before[:1]) for k in r)))
-    running = {k: counters[k] + v for k, v in load_policy(run / POLICY_NAME)[1]["counters"].items() if k in counters}
-    export_policy(run / POLICY_NAME, out / POLICY_NAME, counters=_counts(running))
-    if best is not None and best["episodes"] <= counters["episodes"]:  # START's best.pt stays the best
-        export_policy(start / BEST_NAME, out / BEST_NAME)
-    elif best is not None:
-        ran = {k: counters[k] + v for k, v in load_policy(run / BEST_NAME)[1]["counters"].items() if k in counters}
-        export_policy(run / BEST_NAME, out / BEST_NAME, counters=_counts(ran), validation=best)
-    record = json.loads((out / "net.json").read_text(encoding="utf-8"))
-    record["continues"] = {"snapshot": os.path.relpath(start.resolve(), out.resolve()),
-                           "at": _counts(counters), "train_seed": load_config(start / "config.yaml").train.seed,
-                           "fresh": "optimizer and value normaliser (a start from a policy file, not a resume)"}
-    write_json(out / "net.json", record)
+    _join_changes(start / "config_changes.yaml", out / "config_changes.yaml", int(counters["updates"]))
+    export_policy(run / POLICY_NAME, out / POLICY_NAME, counters=_counted_on(run / POLICY_NAME, counters))
+    if best is not None:
+        earlier = best["episodes"] <= counters["episodes"]  # START's best.pt stays the best
+        part, episode = (start, best["episodes"]) if earlier else (run, best["episodes"] - counters["episodes"])
+        kept = load_policy(part / BEST_NAME)[1]["validation"] or {}
+        if kept.get("episodes") != episode:
+            raise CosimError(f"--continues {start}: {part / BEST_NAME} is from episode {kept.get('episodes')}, not "
+                             f"from the validation training's rule picks in {part / VALIDATION_LOG} (episode "
+                             f"{episode:.0f}; a snapshot taken while training went on?): snapshot that run again")
+        if earlier:
+            export_policy(start / BEST_NAME, out / BEST_NAME)
+        else:
+            export_policy(run / BEST_NAME, out / BEST_NAME, counters=_counted_on(run / BEST_NAME, counters),
+                          validation=best)
+    record = run_record(out)
+    first = first_seed(start)
+    record["continues"] = {"snapshot": os.path.relpath(start.resolve(), out.resolve()), "at": _counts(counters),
+                           "train_seed": load_config(start / "config.yaml").train.seed if first is None else first,
+                           "fresh": "optimizer and value normaliser (a start from a policy file, not a resume)",
+                           "before": run_record(start).get("continues")}
+    write_json(out / NET_RECORD, record)
+
+
+def _counted_on(policy: Path, counters: dict[str, float]) -> dict[str, int | float]:
+    """The counters of a continuation's policy file counted on from its start's `counters`."""
+    own = load_policy(policy)[1]["counters"]
+    return _counts({k: counters[k] + float(v) for k, v in own.items() if k in counters})
 
 
 def _counts(counters: dict[str, float]) -> dict[str, int | float]:
+    """Counters as a policy file keeps them: counts as integers, the training time in seconds."""
     return {k: v if k == "train_s" else int(v) for k, v in counters.items()}
+
+
+def _join_changes(before: Path, ours: Path, updates: int) -> None:
+    """Both parts' config_changes.yaml as one history, the continuation's updates counted on."""
+    history = yaml.safe_load(before.read_text(encoding="utf-8")) if before.is_file() else []
+    then = yaml.safe_load(ours.read_text(encoding="utf-8")) if ours.is_file() else []
+    if history or then:
+        moved = [{**entry, "at_update": int(entry["at_update"]) + updates} for entry in then]
+        atomic_write_text(ours, yaml.safe_dump([*history, *moved], sort_keys=False))
 
 
 def main() -> None:
@@ -149,8 +181,7 @@ def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     if not (args.run / POLICY_NAME).is_file():
         raise CosimError(f"{args.run}: no {POLICY_NAME}; not a training run folder, or one without a checkpoint yet")
-    if args.continues is not None:
-        start_counters(args.run, args.continues)  # refused before anything is written
+    counters = start_counters(args.run, args.continues) if args.continues is not None else None  # refused first
     args.out.mkdir(parents=True, exist_ok=True)
     portable_config(args.run / "config.yaml", args.out)
     for name in COPIED:
@@ -161,8 +192,8 @@ def main() -> None:
     for name in (POLICY_NAME, BEST_NAME):
         if (args.run / name).is_file():
             export_policy(args.run / name, args.out / name)
-    if args.continues is not None:
-        join(args.run, args.continues, args.out)
+    if counters is not None:
+        join(args.run, args.continues, args.out, counters)
     log.info("wrote %s", args.out)
 
 

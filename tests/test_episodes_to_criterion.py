@@ -1,9 +1,8 @@
-"""scripts/episodes_to_criterion.py: which settings set a run apart in its table and plot, and a joined run's seeds."""
+"""scripts/episodes_to_criterion.py: which settings set a run apart from the other seeds in its table and plot."""
 
 from __future__ import annotations
 
 import importlib.util
-import json
 import sys
 from pathlib import Path
 
@@ -24,8 +23,7 @@ def test_how_long_a_run_ran_does_not_set_it_apart_from_its_seeds_but_what_it_lea
     assert criterion._differs(tuned, default) == "train.lr=0.0005 reward.weights.collision=40.0"
 
 
-def test_a_joined_run_names_both_its_seeds(tmp_path: Path) -> None:
-    cfg = load_config(DEFAULT_CONFIG, ["train.seed=1016"])
-    assert criterion._seeds(tmp_path, cfg) == "1016"  # no net.json: one run
-    (tmp_path / "net.json").write_text(json.dumps({"continues": {"train_seed": 16}}))
-    assert criterion._seeds(tmp_path, cfg) == "16, then 1016"
+def test_a_fine_tune_is_set_apart_by_where_it_started(tmp_path: Path) -> None:
+    start = tmp_path / "start.pt"
+    tuned = load_config(DEFAULT_CONFIG, [f"train.init_from={start}"])
+    assert criterion._differs(tuned, load_config(DEFAULT_CONFIG)) == f"train.init_from={start}"

@@ -17,7 +17,7 @@ from agents.train import train
 from agents.validation import better
 from cosim.config import load_config
 from cosim.errors import CosimError
-from cosim.files import VALIDATION_LOG, cell_float, read_csv
+from cosim.files import VALIDATION_LOG, cell_float, read_csv, write_csv
 
 ROOT = Path(__file__).resolve().parents[1]
 spec = importlib.util.spec_from_file_location("snapshot_run", ROOT / "scripts" / "snapshot_run.py")
@@ -78,7 +78,37 @@ def test_a_run_continued_from_a_snapshot_joins_it_as_one_run(tmp_path: Path, mon
     assert first_seed(joined) == 3 and first_seed(tmp_path / "then") is None  # held out, it goes by seed 3
     assert (joined / record["snapshot"]).resolve() == (tmp_path / "start").resolve()
 
-    # Refused, before anything is written: another snapshot than the start, and a run of another config.
+    # Whichever part validated best gives best.pt: the first part where the second's validations were all worse,
+    # the second where the first's were.
+    def worst(folder: Path) -> list[dict[str, str]]:
+        rows = read_csv(folder / VALIDATION_LOG)
+        write_csv(folder / VALIDATION_LOG, [{**r, "crash_high": 100.0} for r in rows])
+        return rows
+
+    kept_rows = worst(tmp_path / "then")
+    snap(tmp_path / "then", "--continues", tmp_path / "start", "--out", tmp_path / "first_best")
+    from_first = load_policy(tmp_path / "first_best" / BEST_NAME)[1]
+    assert from_first["counters"] == load_policy(tmp_path / "start" / BEST_NAME)[1]["counters"]
+    assert from_first["counters"]["episodes"] <= 8
+    write_csv(tmp_path / "then" / VALIDATION_LOG, kept_rows)
+    kept_rows = worst(tmp_path / "start")
+    snap(tmp_path / "then", "--continues", tmp_path / "start", "--out", tmp_path / "then_best")
+    from_then = load_policy(tmp_path / "then_best" / BEST_NAME)[1]
+    own = load_policy(tmp_path / "then" / BEST_NAME)[1]
+    assert from_then["counters"]["episodes"] == 8 + own["counters"]["episodes"] > 8
+    assert from_then["validation"]["episodes"] == 8 + own["validation"]["episodes"]
+    write_csv(tmp_path / "start" / VALIDATION_LOG, kept_rows)
+
+    # A third part joins onto the joined snapshot: its counts run on, and it still goes by the first part's seed.
+    train(smoke(2003), tmp_path / "third", workers=2, progress=False, init_from=joined / POLICY_NAME)
+    snap(tmp_path / "third", "--continues", joined, "--out", tmp_path / "joined3")
+    assert [int(r["episodes"]) for r in read_csv(tmp_path / "joined3" / VALIDATION_LOG)] == [4, 8, 12, 16, 20, 24]
+    assert load_policy(tmp_path / "joined3" / POLICY_NAME)[1]["counters"]["episodes"] == 24
+    assert first_seed(tmp_path / "joined3") == 3
+    assert json.loads((tmp_path / "joined3" / "net.json").read_text())["continues"]["before"]["at"]["episodes"] == 8
+
+    # Refused, before anything is written: another snapshot than the start, a run of another config, a start
+    # without the best.pt its validations promise.
     with pytest.raises(CosimError, match=r"started from .*start/policy.pt, not from .*first/policy.pt"):
         snap(tmp_path / "then", "--continues", tmp_path / "first", "--out", tmp_path / "wrong")
     other = tmp_path / "other"
@@ -88,4 +118,7 @@ def test_a_run_continued_from_a_snapshot_joins_it_as_one_run(tmp_path: Path, mon
     (other / "config.yaml").write_text(yaml.safe_dump(data))
     with pytest.raises(CosimError, match=r"another config \(reward.phi differ"):
         snapshot.start_counters(other, tmp_path / "start")
+    (tmp_path / "start" / BEST_NAME).unlink()
+    with pytest.raises(CosimError, match=r"start has validations but no best.pt to join"):
+        snap(tmp_path / "then", "--continues", tmp_path / "start", "--out", tmp_path / "wrong")
     assert not (tmp_path / "wrong").exists()
