@@ -3,7 +3,7 @@ and to go on from it, without the resumable checkpoint (optimizer state, tens of
 
     python scripts/snapshot_run.py runs/learner/base_pi4_s1 --out results/learner/base_pi4_s1
     python scripts/snapshot_run.py runs/learner/mix_phi0_s16b --continues results/learner/tuning/mix_phi0_s16 \
-        --out results/learner/tuning/mix15k_phi0_s16
+        --out results/learner/tuning/mix30k_phi0_s16
 
 Copies `config.yaml` (its net's paths made relative to OUT, so that a clone of the repository anywhere finds the net
 the run trained on: a run writes them absolute), `net.json`, `config_changes.yaml`, `updates.csv`, `validation.csv`
