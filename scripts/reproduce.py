@@ -77,9 +77,10 @@ def _default(angle: str, seed: int) -> Run:
     return Run(f"hw1_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}"), 4008)
 
 
-def _mixed(angle: str, seed: int) -> Run:
-    """The default run of the same angle and seed fine-tuned on both merging drivers, 4,008 episodes."""
-    return Run(f"mix_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}"), 4008,
+def _mixed(angle: str, seed: int, episodes: int = 4008) -> Run:
+    """The default run of the same angle and seed fine-tuned on both merging drivers."""
+    name = "mix" if episodes == 4008 else f"mix{episodes // 1000}k"
+    return Run(f"{name}_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}"), episodes,
                "configs/mixed_merger.yaml", _default(angle, seed))
 
 
@@ -96,6 +97,11 @@ RECIPES = {
         "the same claims after fine-tuning on both merging drivers (configs/mixed_merger.yaml)",
         "results/heldout_mixed/heldout.md", tuple(_mixed(a, s) for a in ("phi0", "pi4") for s in SEEDS),
         "heldout.py", HELDOUT),
+    "mixed_15k": Recipe(
+        "the same fine-tunes trained on to 15,000 episodes, 300 episodes with each merging driver",
+        "results/heldout_mixed_15k/heldout.md",
+        tuple(_mixed(a, s, 15000) for a in ("phi0", "pi4") for s in SEEDS), "heldout.py",
+        ("--impatient-episodes", "300", *HELDOUT)),
     "transfer": Recipe(
         "the first seed of each angle on nets it never saw, beside the baselines", "results/transfer/transfer.md",
         (_default("phi0", SEEDS[0]), _default("pi4", SEEDS[0])), "transfer.py", ("--out", "{out}"), ("--run",)),

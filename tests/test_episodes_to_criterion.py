@@ -27,3 +27,9 @@ def test_a_fine_tune_is_set_apart_by_where_it_started(tmp_path: Path) -> None:
     start = tmp_path / "start.pt"
     tuned = load_config(DEFAULT_CONFIG, [f"train.init_from={start}"])
     assert criterion._differs(tuned, load_config(DEFAULT_CONFIG)) == f"train.init_from={start}"
+
+
+def test_a_run_on_both_merging_drivers_is_set_apart_by_its_scenario() -> None:
+    # The mixed-merger runs were listed as differing in "nothing" from the polite-only default.
+    mixed = load_config(ROOT / "configs" / "mixed_merger.yaml")
+    assert criterion._differs(mixed, load_config(DEFAULT_CONFIG)) == "scenario.merger_alt_share=0.5"

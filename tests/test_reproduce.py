@@ -27,6 +27,9 @@ def test_every_recipe_lists_its_commands_and_a_fine_tune_comes_after_what_it_sta
     assert len(order) == 12
     for seed in reproduce.SEEDS:
         assert order.index(f"hw1_pi4_s{seed}") < order.index(f"mix_pi4_s{seed}")
+    longer = {r.name: r for r in reproduce._needed(reproduce.RECIPES["mixed_15k"])}
+    assert longer["mix15k_phi0_s17"].episodes == 15000 and longer["mix15k_phi0_s17"].init_from.name == "hw1_phi0_s17"
+    assert "--impatient-episodes" in reproduce.RECIPES["mixed_15k"].evaluation(Path("r"), Path("o"))
 
 
 def test_a_bad_parallel_is_one_line() -> None:
