@@ -12,6 +12,10 @@ and `episodes.csv` (gzipped), and writes `policy.pt` and `best.pt` with float16 
 run folder itself is gone, `cosim train --init-from OUT/policy.pt` is not a resume: it starts a new run from these
 weights with a fresh optimizer and value normaliser (say so beside any figure).
 
+OUT is written whole or not at all: the snapshot is made in a folder beside it and moved in once complete, so a
+failed snapshot (a refused join, a full disk) leaves an earlier one in OUT as it was; files in OUT that are not a
+snapshot's stay.
+
 `--continues START` snapshots such a run as the continuation of START (the snapshot whose `policy.pt` it started
 from; its config the same but for `train.seed`, which a continuation changes so as not to replay START's training
 episodes, and the keys a resume may change): START's logs come first, RUN's follow with their counts (updates,
@@ -30,6 +34,7 @@ import gzip
 import logging
 import os
 import shutil
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -171,6 +176,33 @@ def _join_changes(before: Path, ours: Path, updates: int) -> None:
         atomic_write_text(ours, yaml.safe_dump([*history, *moved], sort_keys=False))
 
 
+SNAPSHOT_FILES = ("config.yaml", *COPIED, "episodes.csv.gz", POLICY_NAME, BEST_NAME)
+
+
+def snapshot(run: Path, out: Path) -> None:
+    """RUN's files, as the module doc lists them, into the empty folder `out`."""
+    portable_config(run / "config.yaml", out)
+    for name in COPIED:
+        if (run / name).is_file():
+            shutil.copyfile(run / name, out / name)
+    with (run / "episodes.csv").open("rb") as src, gzip.open(out / "episodes.csv.gz", "wb") as dst:
+        shutil.copyfileobj(src, dst)
+    for name in (POLICY_NAME, BEST_NAME):
+        if (run / name).is_file():
+            export_policy(run / name, out / name)
+
+
+def publish(stage: Path, out: Path) -> None:
+    """The snapshot in `stage` into `out`: each of its files replaces its namesake, a snapshot file it lacks (an
+    earlier snapshot's best.pt, say) goes, anything else in `out` stays."""
+    out.mkdir(exist_ok=True)
+    for name in SNAPSHOT_FILES:
+        if (stage / name).is_file():
+            os.replace(stage / name, out / name)
+        else:
+            (out / name).unlink(missing_ok=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run", type=Path, help="training run folder")
@@ -182,18 +214,15 @@ def main() -> None:
     if not (args.run / POLICY_NAME).is_file():
         raise CosimError(f"{args.run}: no {POLICY_NAME}; not a training run folder, or one without a checkpoint yet")
     counters = start_counters(args.run, args.continues) if args.continues is not None else None  # refused first
-    args.out.mkdir(parents=True, exist_ok=True)
-    portable_config(args.run / "config.yaml", args.out)
-    for name in COPIED:
-        if (args.run / name).is_file():
-            shutil.copyfile(args.run / name, args.out / name)
-    with (args.run / "episodes.csv").open("rb") as src, gzip.open(args.out / "episodes.csv.gz", "wb") as dst:
-        shutil.copyfileobj(src, dst)
-    for name in (POLICY_NAME, BEST_NAME):
-        if (args.run / name).is_file():
-            export_policy(args.run / name, args.out / name)
-    if counters is not None:
-        join(args.run, args.continues, args.out, counters)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    # Written beside OUT first (the same folder depth, so the relative paths hold) and moved in only once whole: a
+    # snapshot that fails half way (a best.pt that its validation log does not pick, say) leaves OUT as it was.
+    with tempfile.TemporaryDirectory(dir=args.out.parent, prefix=f".{args.out.name}.") as staging:
+        stage = Path(staging)
+        snapshot(args.run, stage)
+        if counters is not None:
+            join(args.run, args.continues, stage, counters)
+        publish(stage, args.out)
     log.info("wrote %s", args.out)
 
 

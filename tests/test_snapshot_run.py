@@ -107,6 +107,18 @@ def test_a_run_continued_from_a_snapshot_joins_it_as_one_run(tmp_path: Path, mon
     assert first_seed(tmp_path / "joined3") == 3
     assert json.loads((tmp_path / "joined3" / "net.json").read_text())["continues"]["before"]["at"]["episodes"] == 8
 
+    # A best.pt that the validation log does not pick fails the join after the logs were joined: the earlier
+    # snapshot in OUT is left as it was, not half overwritten.
+    before = {f.name: f.read_bytes() for f in joined.iterdir()}
+    kept_rows = read_csv(tmp_path / "then" / VALIDATION_LOG)
+    write_csv(tmp_path / "then" / VALIDATION_LOG, [{**r, "crash_high": 100.0} for r in kept_rows[:-1]]
+              + [{**kept_rows[-1], "crash_high": 0.0, "episodes": 7}])
+    with pytest.raises(CosimError, match=r"then/best.pt is from episode \d+, not from the validation .* \(episode 7;"):
+        snap(tmp_path / "then", "--continues", tmp_path / "start", "--out", joined)
+    assert {f.name: f.read_bytes() for f in joined.iterdir()} == before
+    assert [f.name for f in tmp_path.iterdir() if f.name.startswith(".")] == []  # no staging left behind
+    write_csv(tmp_path / "then" / VALIDATION_LOG, kept_rows)
+
     # Refused, before anything is written: another snapshot than the start, a run of another config, a start
     # without the best.pt its validations promise.
     with pytest.raises(CosimError, match=r"started from .*start/policy.pt, not from .*first/policy.pt"):
