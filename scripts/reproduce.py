@@ -13,7 +13,9 @@ runs that several recipes share train once. `--parallel N` trains N at a time, e
 evaluation script writes into `OUT` (default `RUNS/<recipe>`), itself resumable: a second call plays only what is
 missing. Nothing is written into `results/` or `policies/`: compare with the committed report the recipe names.
 
-The recipes are the commands the committed results were made with (each report states its command and machine).
+The recipes are the commands the committed results were made with (each report states its command and machine),
+but for `mixed_15k`: its committed runs were made in parts (resumes; for seeds 16-17 a continuation with a fresh
+optimizer, docs/results.md), which the recipe trains as one run each.
 A rerun gives figures within their intervals, not the same bits: bfloat16 forward passes and the order in which
 worker processes finish are not bitwise reproducible.
 """
