@@ -210,6 +210,7 @@ def main() -> None:
     parser.add_argument("--continues", type=Path, metavar="START",
                         help="the snapshot whose policy.pt RUN started from (cosim train --init-from): join the two")
     args = parser.parse_args()
+    args.out = args.out.resolve()  # `--out .` has no parent or name to stage beside it under
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     if not (args.run / POLICY_NAME).is_file():
         raise CosimError(f"{args.run}: no {POLICY_NAME}; not a training run folder, or one without a checkpoint yet")

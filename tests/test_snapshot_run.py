@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import shutil
 import sys
 from pathlib import Path
@@ -106,6 +107,14 @@ def test_a_run_continued_from_a_snapshot_joins_it_as_one_run(tmp_path: Path, mon
     assert load_policy(tmp_path / "joined3" / POLICY_NAME)[1]["counters"]["episodes"] == 24
     assert first_seed(tmp_path / "joined3") == 3
     assert json.loads((tmp_path / "joined3" / "net.json").read_text())["continues"]["before"]["at"]["episodes"] == 8
+
+    # OUT named as the folder a user stands in: staged beside it, not inside it, so its relative paths hold.
+    (tmp_path / "here").mkdir()
+    monkeypatch.chdir(tmp_path / "here")
+    snap(tmp_path / "then", "--continues", tmp_path / "start", "--out", ".")
+    net = yaml.safe_load((tmp_path / "here" / "config.yaml").read_text())["net"]["file"]
+    assert net == os.path.relpath(load_config(joined / "config.yaml").net.file, tmp_path / "here")
+    assert sorted(f.name for f in (tmp_path / "here").iterdir()) == sorted(f.name for f in joined.iterdir())
 
     # A best.pt that the validation log does not pick fails the join after the logs were joined: the earlier
     # snapshot in OUT is left as it was, not half overwritten.
