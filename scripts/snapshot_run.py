@@ -16,15 +16,15 @@ OUT is written whole or not at all: the snapshot is made in a folder beside it a
 failed snapshot (a refused join, a full disk) leaves an earlier one in OUT as it was; files in OUT that are not a
 snapshot's stay.
 
-`--continues START` snapshots such a run as the continuation of START (the snapshot whose `policy.pt` it started
-from; its config the same but for `train.seed`, which a continuation changes so as not to replay START's training
-episodes, and the keys a resume may change): START's logs come first, RUN's follow with their counts (updates,
-episodes, samples, training time) running on from START's, the validation log's `best` marks are redone over both
-parts by training's rule (`agents.validation.better`), `best.pt` is the better part's, the policy files' counters
-count both parts, and `net.json` says where the parts meet (`continues`; a third part joined onto a joined snapshot
-keeps the record of the join before it, and the first part's training seed). Validation curves, the episodes to
-the criterion and held-out evaluations then read the snapshot as one run. Runs under demand are not joined (their
-`best.pt` also weighs the flow offered).
+`--continues START` snapshots such a run as the continuation of START (the snapshot whose `policy.pt` it started from;
+its config the same but for `train.seed`, which a continuation changes so as not to replay START's training episodes,
+and the keys a resume may change): START's logs come first, RUN's follow with their counts (updates, episodes, samples,
+training time) running on from START's, the validation log's `best` marks are redone over both parts by training's rule
+(`agents.validation.better`), `best.pt` is the better part's, the policy files' counters count both parts, and
+`net.json` says where the parts meet (`continues`; a third part joined onto a joined snapshot keeps the record of the
+join before it, and the first part's training seed); OUT must be another folder than START. Validation curves, the
+episodes to the criterion and held-out evaluations then read the snapshot as one run. Runs under demand are not joined
+(their `best.pt` also weighs the flow offered).
 """
 
 from __future__ import annotations
@@ -214,6 +214,10 @@ def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     if not (args.run / POLICY_NAME).is_file():
         raise CosimError(f"{args.run}: no {POLICY_NAME}; not a training run folder, or one without a checkpoint yet")
+    if args.continues is not None and args.continues.resolve() == args.out:
+        raise CosimError(f"--continues {args.continues} and --out name the same folder: the joined snapshot would "
+                         f"replace the part it continues and record itself as that part; write it to a new folder "
+                         f"(or rename START first)")
     counters = start_counters(args.run, args.continues) if args.continues is not None else None  # refused first
     args.out.parent.mkdir(parents=True, exist_ok=True)
     # Written beside OUT first (the same folder depth, so the relative paths hold) and moved in only once whole: a

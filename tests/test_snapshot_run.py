@@ -128,8 +128,12 @@ def test_a_run_continued_from_a_snapshot_joins_it_as_one_run(tmp_path: Path, mon
     assert [f.name for f in tmp_path.iterdir() if f.name.startswith(".")] == []  # no staging left behind
     write_csv(tmp_path / "then" / VALIDATION_LOG, kept_rows)
 
-    # Refused, before anything is written: another snapshot than the start, a run of another config, a start
-    # without the best.pt its validations promise.
+    # Refused, before anything is written: OUT the start itself, another snapshot than the start, a run of another
+    # config, a start without the best.pt its validations promise.
+    start_files = {f.name: f.read_bytes() for f in (tmp_path / "start").iterdir()}
+    with pytest.raises(CosimError, match=r"--continues .*start and --out name the same folder"):
+        snap(tmp_path / "then", "--continues", tmp_path / "start", "--out", tmp_path / "start")
+    assert {f.name: f.read_bytes() for f in (tmp_path / "start").iterdir()} == start_files
     with pytest.raises(CosimError, match=r"started from .*start/policy.pt, not from .*first/policy.pt"):
         snap(tmp_path / "then", "--continues", tmp_path / "first", "--out", tmp_path / "wrong")
     other = tmp_path / "other"
