@@ -14,8 +14,8 @@ evaluation script writes into `OUT` (default `RUNS/<recipe>`), itself resumable:
 missing. Nothing is written into `results/` or `policies/`: compare with the committed report the recipe names.
 
 The recipes are the commands the committed results were made with (each report states its command and machine),
-but for `mixed_15k`: its committed runs were made in parts (resumes; for seeds 16-17 a continuation with a fresh
-optimizer, docs/results.md), which the recipe trains as one run each.
+but for `mixed_15k` and `mixed_30k`: their committed runs were made in parts (resumes, and continuations from a
+float16 snapshot with a fresh optimizer: docs/results.md), which the recipes train as one run each.
 A rerun gives figures within their intervals, not the same bits: bfloat16 forward passes and the order in which
 worker processes finish are not bitwise reproducible.
 """
@@ -103,6 +103,11 @@ RECIPES = {
         "the same fine-tunes trained on to 15,000 episodes, 300 episodes with each merging driver",
         "results/heldout_mixed_15k/heldout.md",
         tuple(_mixed(a, s, 15000) for a in ("phi0", "pi4") for s in SEEDS), "heldout.py",
+        ("--impatient-episodes", "300", *HELDOUT)),
+    "mixed_30k": Recipe(
+        "the same fine-tunes at the paper's budget of 30,000 episodes, 300 episodes with each merging driver",
+        "results/heldout_mixed_30k/heldout.md",
+        tuple(_mixed(a, s, 30000) for a in ("phi0", "pi4") for s in SEEDS), "heldout.py",
         ("--impatient-episodes", "300", *HELDOUT)),
     "transfer": Recipe(
         "the first seed of each angle on nets it never saw, beside the baselines", "results/transfer/transfer.md",
