@@ -87,6 +87,17 @@ def _mixed(angle: str, seed: int, episodes: int = 4008) -> Run:
 
 
 HELDOUT = ("--shield", "--out", "{out}")
+
+
+def _mixed_longer(episodes: int, what: str) -> Recipe:
+    """The mixed fine-tunes of every seed and both angles trained on to `episodes`, 300 held-out episodes with each
+    merging driver."""
+    return Recipe(f"the same fine-tunes {what}, 300 episodes with each merging driver",
+                  f"results/heldout_mixed_{episodes // 1000}k/heldout.md",
+                  tuple(_mixed(a, s, episodes) for a in ("phi0", "pi4") for s in SEEDS), "heldout.py",
+                  ("--impatient-episodes", "300", *HELDOUT))
+
+
 RECIPES = {
     "heldout_headway": Recipe(
         "the paper's claims, three training seeds per angle, polite and impatient merging vehicle, with and without "
@@ -99,16 +110,8 @@ RECIPES = {
         "the same claims after fine-tuning on both merging drivers (configs/mixed_merger.yaml)",
         "results/heldout_mixed/heldout.md", tuple(_mixed(a, s) for a in ("phi0", "pi4") for s in SEEDS),
         "heldout.py", HELDOUT),
-    "mixed_15k": Recipe(
-        "the same fine-tunes trained on to 15,000 episodes, 300 episodes with each merging driver",
-        "results/heldout_mixed_15k/heldout.md",
-        tuple(_mixed(a, s, 15000) for a in ("phi0", "pi4") for s in SEEDS), "heldout.py",
-        ("--impatient-episodes", "300", *HELDOUT)),
-    "mixed_30k": Recipe(
-        "the same fine-tunes at the paper's budget of 30,000 episodes, 300 episodes with each merging driver",
-        "results/heldout_mixed_30k/heldout.md",
-        tuple(_mixed(a, s, 30000) for a in ("phi0", "pi4") for s in SEEDS), "heldout.py",
-        ("--impatient-episodes", "300", *HELDOUT)),
+    "mixed_15k": _mixed_longer(15000, "trained on to 15,000 episodes"),
+    "mixed_30k": _mixed_longer(30000, "at the paper's budget of 30,000 episodes"),
     "transfer": Recipe(
         "the first seed of each angle on nets it never saw, beside the baselines", "results/transfer/transfer.md",
         (_default("phi0", SEEDS[0]), _default("pi4", SEEDS[0])), "transfer.py", ("--out", "{out}"), ("--run",)),
