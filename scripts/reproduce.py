@@ -14,8 +14,9 @@ evaluation script writes into `OUT` (default `RUNS/<recipe>`), itself resumable:
 missing. Nothing is written into `results/` or `policies/`: compare with the committed report the recipe names.
 
 The recipes are the commands the committed results were made with (each report states its command and machine),
-but for `mixed_15k` and `mixed_30k`: their committed runs were made in parts (resumes, and continuations from a
-float16 snapshot with a fresh optimizer: docs/results.md), which the recipes train as one run each.
+but for `mixed_15k`, `mixed_30k` and the two of the shipped mixed pair (`transfer_mixed`, `demand_mixed`): their
+committed runs were made in parts (resumes, and continuations from a float16 snapshot with a fresh optimizer:
+docs/results.md), which the recipes train as one run each.
 A rerun gives figures within their intervals, not the same bits: bfloat16 forward passes and the order in which
 worker processes finish are not bitwise reproducible.
 """
@@ -80,13 +81,15 @@ def _default(angle: str, seed: int) -> Run:
 
 
 def _mixed(angle: str, seed: int, episodes: int = 4008) -> Run:
-    """The default run of the same angle and seed fine-tuned on both merging drivers."""
-    name = "mix" if episodes == 4008 else f"mix{episodes // 1000}k"
+    """The default run of the same angle and seed fine-tuned on both merging drivers; at the full budget named as
+    its committed snapshots are (`mixfull_*`: the committed `mix30k_*` are the 15,000-episode ones)."""
+    name = {4008: "mix", 30000: "mixfull"}.get(episodes, f"mix{episodes // 1000}k")
     return Run(f"{name}_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}"), episodes,
                "configs/mixed_merger.yaml", _default(angle, seed))
 
 
 HELDOUT = ("--shield", "--out", "{out}")
+SHIPPED_MIXED = (_mixed("phi0", SEEDS[0], 30000), _mixed("pi4", SEEDS[0], 30000))
 
 
 def _mixed_longer(episodes: int, what: str) -> Recipe:
@@ -115,6 +118,13 @@ RECIPES = {
     "transfer": Recipe(
         "the first seed of each angle on nets it never saw, beside the baselines", "results/transfer/transfer.md",
         (_default("phi0", SEEDS[0]), _default("pi4", SEEDS[0])), "transfer.py", ("--out", "{out}"), ("--run",)),
+    "transfer_mixed": Recipe(
+        "the shipped mixed pair (policies/*_mixed: mixed_30k's first seed) on nets it never saw",
+        "results/transfer_mixed/transfer.md", SHIPPED_MIXED, "transfer.py", ("--out", "{out}"), ("--run",)),
+    "demand_mixed": Recipe(
+        "the shipped mixed pair under traffic demand near capacity, 10% and 30% AVs, against all-human traffic",
+        "results/headline_mixed/headline.md", SHIPPED_MIXED, "demand_headline.py",
+        ("--levels", "near capacity", "--penetrations", "0.1", "0.3", "--out", "{out}")),
 }
 
 

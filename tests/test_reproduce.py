@@ -31,8 +31,11 @@ def test_every_recipe_lists_its_commands_and_a_fine_tune_comes_after_what_it_sta
     assert longer["mix15k_phi0_s17"].episodes == 15000 and longer["mix15k_phi0_s17"].init_from.name == "hw1_phi0_s17"
     assert "--impatient-episodes" in reproduce.RECIPES["mixed_15k"].evaluation(Path("r"), Path("o"))
     full = reproduce.RECIPES["mixed_30k"]
-    assert [r.episodes for r in full.runs] == [30000] * 6 and full.runs[0].name == "mix30k_phi0_s15"
+    assert [r.episodes for r in full.runs] == [30000] * 6 and full.runs[0].name == "mixfull_phi0_s15"
     assert all(r.init_from.name.startswith("hw1_") for r in full.runs)
+    # the shipped pair's other results play the same two runs mixed_30k trains, not two more
+    for name in ("transfer_mixed", "demand_mixed"):
+        assert reproduce.RECIPES[name].runs == full.runs[::3]
 
 
 def test_a_bad_parallel_is_one_line() -> None:
