@@ -91,16 +91,18 @@ def main() -> None:
 
 
 def _differs(cfg: Config, default: Config) -> str:
-    """The run's training, reward and scenario settings that are not the default config's (the seed, the SVO angle
-    and the bookkeeping keys aside), as KEY=VALUE: a run on both merging drivers differs in its scenario."""
+    """The run's training, reward, scenario, observation and AV settings that are not the default config's (the seed,
+    the SVO angle and the bookkeeping keys aside), as KEY=VALUE: a run on both merging drivers differs in its
+    scenario, one with a narrower VelocityMap in its observation."""
     # What a resume may change is how long and how a run ran, not what it learned with; where it started is.
     ignored = {"seed", *(k.removeprefix("train.") for k in RESUMABLE)} - {"init_from"}
     mine, theirs = train_config(cfg).model_dump(), train_config(default).model_dump()
     out = [f"train.{k}={v}" for k, v in mine.items() if k not in ignored and theirs.get(k) != v]
     out += [f"reward.weights.{k}={getattr(cfg.reward.weights, k)}" for k in TERMS
             if getattr(cfg.reward.weights, k) != getattr(default.reward.weights, k)]
-    mine, theirs = cfg.scenario.model_dump(), default.scenario.model_dump()
-    out += [f"scenario.{k}={v}" for k, v in mine.items() if theirs.get(k) != v]
+    for section in ("scenario", "observation", "av"):
+        mine, theirs = getattr(cfg, section).model_dump(), getattr(default, section).model_dump()
+        out += [f"{section}.{k}={v}" for k, v in mine.items() if theirs.get(k) != v]
     return " ".join(out)
 
 

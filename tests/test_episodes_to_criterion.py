@@ -33,3 +33,10 @@ def test_a_run_on_both_merging_drivers_is_set_apart_by_its_scenario() -> None:
     # The mixed-merger runs were listed as differing in "nothing" from the polite-only default.
     mixed = load_config(ROOT / "configs" / "mixed_merger.yaml")
     assert criterion._differs(mixed, load_config(DEFAULT_CONFIG)) == "scenario.merger_alt_share=0.5"
+
+
+def test_a_run_with_another_observation_or_a_shield_is_set_apart() -> None:
+    # A run on a 16 m VelocityMap was listed as differing in "nothing" from the default's 32 m.
+    narrow = load_config(DEFAULT_CONFIG, ["observation.height_px=16", "observation.width_m=16", "av.shield=sumo"])
+    assert (criterion._differs(narrow, load_config(DEFAULT_CONFIG))
+            == "observation.height_px=16 observation.width_m=16.0 av.shield=sumo")
