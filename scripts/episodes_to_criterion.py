@@ -91,17 +91,22 @@ def main() -> None:
 
 
 def _differs(cfg: Config, default: Config) -> str:
-    """The run's training, reward, scenario, observation and AV settings that are not the default config's (the seed,
-    the SVO angle and the bookkeeping keys aside), as KEY=VALUE: a run on both merging drivers differs in its
-    scenario, one with a narrower VelocityMap in its observation."""
+    """The run's settings that are not the default config's (the seed, the SVO angle and the bookkeeping keys
+    aside), as KEY=VALUE: a run on both merging drivers differs in its scenario, one with a narrower VelocityMap in
+    its observation, one with the impatient merging vehicle in its merger."""
     # What a resume may change is how long and how a run ran, not what it learned with; where it started is.
     ignored = {"seed", *(k.removeprefix("train.") for k in RESUMABLE)} - {"init_from"}
     mine, theirs = train_config(cfg).model_dump(), train_config(default).model_dump()
     out = [f"train.{k}={v}" for k, v in mine.items() if k not in ignored and theirs.get(k) != v]
     out += [f"reward.weights.{k}={getattr(cfg.reward.weights, k)}" for k in TERMS
             if getattr(cfg.reward.weights, k) != getattr(default.reward.weights, k)]
-    for section in ("scenario", "observation", "av"):
-        mine, theirs = getattr(cfg, section).model_dump(), getattr(default, section).model_dump()
+    out += [f"reward.{k}={v}" for k, v in cfg.reward.model_dump(exclude={"phi", "weights"}).items()
+            if getattr(default.reward, k) != v]
+    # merger_alt is left out: scenario.merger_alt_share says whether a run met it, its config file what it was.
+    # SUMO's outputs and the seed are bookkeeping: an evaluation turns the outputs on.
+    for section in ("sim", "safety", "scenario", "hv", "merger", "av", "observation", "demand"):
+        mine = getattr(cfg, section).model_dump(exclude={"outputs", "output_dir", "seed"})
+        theirs = getattr(default, section).model_dump()
         out += [f"{section}.{k}={v}" for k, v in mine.items() if theirs.get(k) != v]
     return " ".join(out)
 

@@ -35,8 +35,11 @@ def test_a_run_on_both_merging_drivers_is_set_apart_by_its_scenario() -> None:
     assert criterion._differs(mixed, load_config(DEFAULT_CONFIG)) == "scenario.merger_alt_share=0.5"
 
 
-def test_a_run_with_another_observation_or_a_shield_is_set_apart() -> None:
+def test_a_run_with_another_observation_driver_or_social_reward_is_set_apart() -> None:
     # A run on a 16 m VelocityMap was listed as differing in "nothing" from the default's 32 m.
-    narrow = load_config(DEFAULT_CONFIG, ["observation.height_px=16", "observation.width_m=16", "av.shield=sumo"])
-    assert (criterion._differs(narrow, load_config(DEFAULT_CONFIG))
-            == "observation.height_px=16 observation.width_m=16.0 av.shield=sumo")
+    default = load_config(DEFAULT_CONFIG)
+    narrow = load_config(DEFAULT_CONFIG, ["observation.height_px=16", "observation.width_m=16", "av.shield=sumo",
+                                          "reward.social=mean", "sim.seed=7", "sim.outputs=true"])
+    assert (criterion._differs(narrow, default)
+            == "reward.social=mean av.shield=sumo observation.height_px=16 observation.width_m=16.0")
+    assert criterion._differs(load_config(ROOT / "configs" / "impatient.yaml"), default).startswith("merger.")

@@ -58,3 +58,8 @@ def test_runs_train_once_and_a_longer_one_resumes(tmp_path: Path) -> None:
     assert int(read_checkpoint(tmp_path / "smoke" / "checkpoint.pt")["counters"]["episodes"]) >= 8
     log = (tmp_path / "logs" / "smoke.log").read_text()
     assert log.count("trained") >= 2, log[-2000:]
+
+
+def test_every_recipe_names_a_committed_report() -> None:
+    for name, recipe in reproduce.RECIPES.items():
+        assert (ROOT / recipe.report).is_file(), f"{name}: {recipe.report}"
