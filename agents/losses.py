@@ -153,7 +153,7 @@ class ValueNorm(torch.nn.Module):
 
 def _adam(params: Iterable[nn.Parameter], tc: TrainConfig) -> torch.optim.Optimizer:
     # Fused: one kernel over all parameters. torch's default on the CPU is a loop over them, 8x slower for the
-    # default network's 2 M parameters (17 against 2 ms per step on one thread; scripts/bench_train.py).
+    # default network's 2 M parameters (17 against 2 ms per step on one thread; docs/speed.md).
     return torch.optim.Adam(params, lr=tc.lr, eps=tc.optimizer_eps, fused=True)
 
 
