@@ -24,9 +24,10 @@ Contract:
   when the run trained with `train.action_mask` (its checkpoint's train section; runs from before the key
   existed trained without).
 Payload layout (format "cosim-ma-a2c", version 2): spec {agents, obs_shape, obs_dtype, n_actions,
-shared_policy, feature_dim, head_hidden}, policy (MultiAgentPolicy.state_dict()), counters (with train_s),
-rng {python, numpy, torch}, train (TrainConfig as a dict), config (Config.to_dict()), phis (each AV's SVO
-[rad]). The policy file ("cosim-policy", same version): spec, nets, counters, train, config, phis.
+shared_policy, feature_dim, head_hidden, shared_encoder (absent before it existed: shared)}, policy
+(MultiAgentPolicy.state_dict()), counters (with train_s), rng {python, numpy, torch}, train (TrainConfig as a dict),
+config (Config.to_dict()), phis (each AV's SVO [rad]). The policy file ("cosim-policy", same version): spec, nets,
+counters, train, config, phis.
 """
 
 from __future__ import annotations
@@ -153,11 +154,15 @@ def _checked_checkpoint(payload: Any, path: Path, expect: dict[str, Any] | None 
     return payload
 
 
+# Spec entries added after checkpoints were first written, with what the checkpoints without them trained with.
+SPEC_DEFAULTS: dict[str, Any] = {"shared_encoder": True}
+
+
 def check_spec(payload: dict[str, Any], expect: dict[str, Any], path: Path) -> None:
     """Raise `CheckpointError` naming `path` unless the payload's spec matches every `expect` entry."""
     spec = payload["spec"]
     for key, want in expect.items():
-        have = spec.get(key)
+        have = spec.get(key, SPEC_DEFAULTS.get(key))
         if _norm(have) != _norm(want):
             raise CheckpointError(f"checkpoint {path}: incompatible {key}: checkpoint has {have!r}, "
                                   f"this run needs {want!r}")
@@ -187,7 +192,8 @@ def _tuples(value: Any) -> Any:
 
 def build_net(spec: dict[str, Any]) -> ActorCritic:
     return ActorCritic(tuple(spec["obs_shape"]), spec["n_actions"], feature_dim=spec["feature_dim"],
-                       head_hidden=spec["head_hidden"])
+                       head_hidden=spec["head_hidden"],
+                       shared_encoder=spec.get("shared_encoder", SPEC_DEFAULTS["shared_encoder"]))
 
 
 def _checked_policy_file(payload: Any, path: Path) -> dict[str, Any]:

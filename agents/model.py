@@ -92,7 +92,7 @@ class ActorCritic(nn.Module):
     """Feature extractor (`VelocityMapEncoder`) shared by an actor head (logits) and a critic head (value)."""
 
     def __init__(self, obs_shape: tuple[int, ...], n_actions: int = 5, *, feature_dim: int = 512,
-                 head_hidden: int = 256, bf16: bool = False) -> None:
+                 head_hidden: int = 256, bf16: bool = False, shared_encoder: bool = True) -> None:
         super().__init__()
         # Run the forward pass in bfloat16 (weights and outputs stay float32): about twice as fast on CPUs with
         # AMX / AVX512-BF16 (scripts/bench_train.py); the trainer turns it on there, evaluation never does.
@@ -101,6 +101,9 @@ class ActorCritic(nn.Module):
         self.n_actions = n_actions
         relu_gain = math.sqrt(2.0)
         self.features = VelocityMapEncoder(self.obs_shape, feature_dim)
+        # Separate: the critic's regression no longer shapes the actor's features (MAPPO's default; Andrychowicz et
+        # al. 2021 found shared ones worse), at twice the encoder's work per sample.
+        self.critic_features = None if shared_encoder else VelocityMapEncoder(self.obs_shape, feature_dim)
         self.actor = nn.Sequential(_init(nn.Linear(feature_dim, head_hidden), relu_gain), nn.ReLU(),
                                    _init(nn.Linear(head_hidden, n_actions), 0.01))
         self.critic = nn.Sequential(_init(nn.Linear(feature_dim, head_hidden), relu_gain), nn.ReLU(),
@@ -120,13 +123,22 @@ class ActorCritic(nn.Module):
         the network trains with it (validation plays as evaluation does)."""
         with self._precision(obs, float32):
             h = self.features(obs)
-            logits, values = self.actor(h), self.critic(h).squeeze(-1)
+            logits, values = self.actor(h), self.critic(self._critic_features(obs, h)).squeeze(-1)
         return logits.float(), values.float()
+
+    def _critic_features(self, obs: torch.Tensor, actor_features: torch.Tensor | None = None) -> torch.Tensor:
+        if self.critic_features is not None:
+            return self.critic_features(obs)
+        return self.features(obs) if actor_features is None else actor_features
+
+    @property
+    def shared_encoder(self) -> bool:
+        return self.critic_features is None
 
     def value(self, obs: torch.Tensor) -> torch.Tensor:
         """(B, F, C, H, W) -> (B,), float32."""
         with self._precision(obs):
-            return self.critic(self.features(obs)).squeeze(-1).float()
+            return self.critic(self._critic_features(obs)).squeeze(-1).float()
 
     @torch.no_grad()
     def act(self, obs: np.ndarray | torch.Tensor, greedy: bool = False,

@@ -100,7 +100,8 @@ class MultiAgentPolicy:
         n_nets = 1 if self.shared else n_agents
         self.bf16 = use_bf16(tc.precision, tc.device) and _bf16_sound(obs_shape, n_actions, tc, self.device)
         self.nets = [ActorCritic(obs_shape, n_actions, feature_dim=tc.feature_dim, head_hidden=tc.head_hidden,
-                                 bf16=self.bf16).to(self.device) for _ in range(n_nets)]
+                                 bf16=self.bf16, shared_encoder=tc.shared_encoder).to(self.device)
+                     for _ in range(n_nets)]
         self.acting = [] if self.shared else [copy.deepcopy(net).requires_grad_(False) for net in self.nets]
         self.optimizers = [OPTIMIZERS[tc.optimizer](net.parameters(), tc) for net in self.nets]
         self.value_norms = [ValueNorm().to(self.device) if tc.value_norm else None for _ in self.nets]

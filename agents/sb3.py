@@ -64,7 +64,8 @@ def ppo_kwargs(tc: TrainConfig, n_steps: int, batch: int) -> dict[str, Any]:
             "normalize_advantage": tc.normalize_advantage,
             "policy_kwargs": {"features_extractor_class": VelocityMapExtractor,
                               "features_extractor_kwargs": {"features_dim": tc.feature_dim},
-                              "net_arch": [tc.head_hidden], "normalize_images": False}}
+                              "net_arch": [tc.head_hidden], "normalize_images": False,
+                              "share_features_extractor": tc.shared_encoder}}
 
 
 class _SummaryRenamed(VecEnvWrapper):

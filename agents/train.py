@@ -436,7 +436,8 @@ class _Run:
             self.agents = spec.agents
             self.spec = {"agents": list(spec.agents), "obs_shape": list(spec.obs_shape), "obs_dtype": spec.obs_dtype,
                          "n_actions": spec.n_actions, "shared_policy": tc.shared_policy,
-                         "feature_dim": tc.feature_dim, "head_hidden": tc.head_hidden}
+                         "feature_dim": tc.feature_dim, "head_hidden": tc.head_hidden,
+                         "shared_encoder": tc.shared_encoder}
             self.policy = MultiAgentPolicy(len(spec.agents), spec.obs_shape, spec.n_actions, tc, tc.device)
             # Which one `auto` chose decides whether the run is reproducible bit for bit (README).
             log.info("forward passes in %s (train.precision: %s)",
@@ -489,7 +490,8 @@ class _Run:
         path = meta["path"]
         try:
             check_spec({"spec": meta["spec"]}, {k: self.spec[k] for k in ("obs_shape", "n_actions", "feature_dim",
-                                                                          "head_hidden")}, Path(path))
+                                                                          "head_hidden", "shared_encoder")},
+                       Path(path))
         except CheckpointError as exc:
             raise _from_config(exc) if meta.get("configured") else exc from None
         for name, net in zip(self.agents, self.policy.nets, strict=False):  # one per AV, or the shared one

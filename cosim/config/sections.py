@@ -609,6 +609,10 @@ class TrainConfig(_Section):
         "support it), else float32; only float32 runs are reproducible bit for bit")
     feature_dim: Int = Field(512, gt=0, description="units of the feature extractor's FC layer (paper: 512)")
     head_hidden: Int = Field(256, gt=0, description="units of the actor's and critic's hidden FC layer (paper: 256)")
+    shared_encoder: StrictBool = Field(
+        True, description="one Conv3D encoder under the actor's and the critic's heads (the paper's network); false: "
+        "each its own (MAPPO's default), twice the encoder's work per sample; on the default scenario it reached no "
+        "safe policy sooner (docs/results.md)")
     max_restarts: Int = Field(100, ge=0, description="worker restarts tolerated over a run before it is stopped")
     step_timeout: Number = Field(
         60.0, gt=0, description="a worker silent this long is killed and restarted like a crashed one [s]")

@@ -66,6 +66,20 @@ def test_gradient_reaches_every_parameter() -> None:
         assert p.grad is not None and p.grad.abs().sum() > 0, name
 
 
+@pytest.mark.parametrize("shared", [True, False])
+def test_the_critics_loss_shapes_the_actors_features_only_through_a_shared_encoder(shared: bool) -> None:
+    torch.manual_seed(0)
+    net = ActorCritic((2, 4, 8, 16), feature_dim=32, head_hidden=16, shared_encoder=shared)
+    assert net.shared_encoder is shared and (net.critic_features is None) is shared
+    _, values = net(torch.rand(6, 2, 4, 8, 16))
+    values.square().sum().backward()
+    actor_encoder = [p.grad is not None and p.grad.abs().sum() > 0 for p in net.features.parameters()]
+    assert all(actor_encoder) if shared else not any(actor_encoder)
+    if not shared:
+        assert all(p.grad.abs().sum() > 0 for p in net.critic_features.parameters())
+        torch.testing.assert_close(net.value(torch.ones(2, 2, 4, 8, 16)), net(torch.ones(2, 2, 4, 8, 16))[1])
+
+
 def test_act_on_read_only_numpy_views() -> None:
     net = ActorCritic((2, 4, 8, 16), feature_dim=32, head_hidden=16)
     obs = np.random.default_rng(0).random((5, 2, 4, 8, 16), dtype=np.float32)

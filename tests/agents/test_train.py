@@ -348,6 +348,23 @@ def test_init_from_starts_a_new_run_from_a_policys_weights_with_a_fresh_optimize
               env_factory=make_fake_env(n_agents=2), init_from=tmp_path / "half.pt")
 
 
+def test_separate_encoders_train_save_and_load_and_a_shared_policy_cannot_start_them(tmp_path: Path) -> None:
+    from agents.checkpoint import check_spec, export_policy
+
+    first = train(cfg_with(shared_encoder=False), tmp_path / "sep", workers=1, episodes=2,
+                  env_factory=make_fake_env(n_agents=2), progress=False)
+    export_policy(first.checkpoint, tmp_path / "sep.pt")
+    policies, meta = load_policy(tmp_path / "sep.pt")
+    assert meta["spec"]["shared_encoder"] is False and not policies["av_0"].shared_encoder
+    shared = train(cfg_with(), tmp_path / "shared", workers=1, episodes=1, env_factory=make_fake_env(n_agents=2),
+                   progress=False)
+    with pytest.raises(CheckpointError, match="incompatible shared_encoder: checkpoint has True, this run needs False"):
+        train(cfg_with(shared_encoder=False), tmp_path / "third", workers=1, episodes=1, progress=False,
+              env_factory=make_fake_env(n_agents=2), init_from=shared.checkpoint)
+    # Checkpoints from before the key trained one shared encoder: their spec has no entry, read as shared.
+    check_spec({"spec": {"feature_dim": 32}}, {"feature_dim": 32, "shared_encoder": True}, tmp_path / "old.pt")
+
+
 def test_a_resumed_fine_tune_still_names_the_policy_it_started_from(tmp_path: Path,
                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     # The resume rewrote net.json from its own command line, which has no --init-from: the fine-tune's origin was lost.
