@@ -24,6 +24,7 @@ def _heldout(*args: str) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=600)
 
 
+@pytest.mark.slow  # 11 s
 def test_a_run_meets_each_merging_vehicle_on_held_out_episodes(tmp_path: Path) -> None:
     run = tmp_path / "alt_s0"
     train(load_config("configs/smoke.yaml", ["train.episodes=4", "train.eval_every=4", "train.eval_episodes=2",

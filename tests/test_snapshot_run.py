@@ -41,6 +41,7 @@ def test_a_snapshots_config_names_the_net_and_the_start_relative_to_itself(tmp_p
 
 
 @pytest.mark.sumo
+@pytest.mark.slow  # 16 s
 def test_a_run_continued_from_a_snapshot_joins_it_as_one_run(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     # A machine without the first part's run folder goes on with --init-from its snapshot: the joined snapshot's
     # logs, best.pt and counters read as one run, which held-out evaluation and the learning curves take it for.

@@ -136,6 +136,7 @@ def test_what_demand_training_cannot_do_is_refused_in_one_line(tmp_path: Path, k
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow  # 16 s
 def test_training_under_demand_starts_from_the_shipped_episode_policy_by_default(tmp_path: Path,
                                                                                    caplog: pytest.LogCaptureFixture
                                                                                    ) -> None:

@@ -72,7 +72,8 @@ def test_actors_deliver_the_envs_observations_exactly(delivers_exactly, delivery
         pool.close()
 
 
-@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "stopped"])
+@pytest.mark.parametrize("sig", [signal.SIGKILL, pytest.param(signal.SIGSTOP, marks=pytest.mark.slow)],
+                         ids=["killed", "stopped"])
 def test_a_dead_or_silent_actor_is_restarted_and_its_episode_lost(sig: signal.Signals) -> None:
     pool = RayWorkerPool(make_fake_env(n_agents=2), workers=2, timeout=3.0)
     try:
@@ -131,6 +132,7 @@ def test_ray_address_needs_the_ray_backend(tmp_path: Path) -> None:
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow  # 21 s
 def test_sweep_runs_its_runs_as_ray_tasks(tmp_path: Path) -> None:
     # A run takes a CPU for its learner and one per rollout actor: 2 here, so the 2-CPU Ray runs one at a time.
     cfg = load_config("configs/smoke.yaml", ["train.workers=1"])

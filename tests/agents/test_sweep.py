@@ -15,6 +15,7 @@ pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 ROOT = Path(__file__).resolve().parents[2]
 
 
+@pytest.mark.slow  # 31 s; the default tier has the sweep's own checks (tests/faults: live folders, kill -9)
 def test_tiny_sweep_runs_end_to_end_and_resumes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(ROOT)
     out = tmp_path / "sweep"

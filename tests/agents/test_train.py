@@ -49,7 +49,8 @@ def episode_rows(run: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-@pytest.mark.parametrize("algo,shared", [("a2c", True), ("ppo", True), ("a2c", False)])
+@pytest.mark.parametrize("algo,shared",
+                         [pytest.param("a2c", True, marks=pytest.mark.slow), ("ppo", True), ("a2c", False)])
 def test_training_improves_the_return_over_the_untrained_policy(tmp_path: Path, algo: str, shared: bool) -> None:
     cfg = cfg_with(algo=algo, shared_policy=shared)
     torch.manual_seed(SMALL["seed"])
@@ -67,6 +68,7 @@ def test_training_improves_the_return_over_the_untrained_policy(tmp_path: Path, 
     assert any((tmp_path / "run" / "tb").iterdir())
 
 
+@pytest.mark.slow  # 19 s; under demand, segments train in the default tier (tests/agents/test_demand_training.py)
 def test_segments_of_continuing_episodes_learn_and_seed_every_episode_apart(tmp_path: Path) -> None:
     # Segments of 12 decisions of episodes of 8: most episodes span two updates, bootstrapped at the cut.
     cfg = cfg_with(algo="ppo", segments=True, segment_steps=12)

@@ -67,6 +67,7 @@ def test_bad_input_is_one_line_and_exit_2(cli: Any, tmp_path: Path, args: list[s
     assert cli.no_leftovers()
 
 
+@pytest.mark.slow  # 18 s
 def test_refused_resume_and_refused_outputs_leave_the_run_unchanged(smoke_run: Path, cli_class: type) -> None:
     cli = cli_class(smoke_run.parent)
     before = cli.folder_state(smoke_run)
@@ -83,6 +84,7 @@ def test_refused_resume_and_refused_outputs_leave_the_run_unchanged(smoke_run: P
     assert cli.run("evaluate", "--run", "run", "--episodes", "1", "--out", "eval").returncode == 0
 
 
+@pytest.mark.slow  # 20 s; the default tier resumes bitwise on the fake env (tests/agents/test_train.py)
 def test_resume_on_real_sumo_is_bitwise_the_uninterrupted_run(smoke_run: Path, cli: Any, tmp_path: Path) -> None:
     common = ("--config", SMOKE,
               *cli.settings("train.checkpoint_every=2", "train.episodes=8", "train.precision=float32"))
@@ -116,7 +118,7 @@ def test_a_signal_stops_training_with_a_checkpoint_and_exit_130(cli: Any, tmp_pa
     assert cli.no_leftovers()
 
 
-@pytest.mark.parametrize("fault", ["kill", "stop"])
+@pytest.mark.parametrize("fault", ["kill", pytest.param("stop", marks=pytest.mark.slow)])
 def test_a_killed_or_stopped_worker_is_replaced_and_training_goes_on(cli: Any, tmp_path: Path,
                                                                      fault: str) -> None:
     proc = _start_training(cli, "train.step_timeout=5", "train.episodes=12")
