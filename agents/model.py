@@ -6,7 +6,9 @@ Contract: `ActorCritic(obs_shape, n_actions)` takes observations shaped like the
 runs in bfloat16 autocast: weights and outputs stay float32, the outputs off float32's by about 1% of their
 scale, and not reproducible bit for bit run to run on CPUs with bfloat16 instructions. Frames are Conv3D's
 depth axis and channels its channels. The flatten size follows from the observation shape by a dummy forward,
-so the paper preset (10, 4, 64, 512) and the CPU default (5, 4, 32, 128) build from the same code.
+so the paper preset (10, 4, 64, 512) and the CPU default (5, 4, 32, 128) build from the same code. The actor
+and the critic share the encoder, as the paper's network does, unless `shared_encoder=False`
+(`train.shared_encoder`).
 """
 
 from __future__ import annotations
@@ -89,7 +91,8 @@ class VelocityMapEncoder(nn.Module):
 
 
 class ActorCritic(nn.Module):
-    """Feature extractor (`VelocityMapEncoder`) shared by an actor head (logits) and a critic head (value)."""
+    """Feature extractor (`VelocityMapEncoder`) under an actor head (logits) and a critic head (value); with
+    `shared_encoder=False` the critic has an encoder of its own (`critic_features`)."""
 
     def __init__(self, obs_shape: tuple[int, ...], n_actions: int = 5, *, feature_dim: int = 512,
                  head_hidden: int = 256, bf16: bool = False, shared_encoder: bool = True) -> None:
