@@ -24,7 +24,7 @@ Contract:
   when the run trained with `train.action_mask` (its checkpoint's train section; runs from before the key
   existed trained without).
 Payload layout (format "cosim-ma-a2c", version 2): spec {agents, obs_shape, obs_dtype, n_actions,
-shared_policy, feature_dim, head_hidden, shared_encoder (absent before it existed: shared)}, policy
+shared_policy, feature_dim, head_hidden, shared_encoder and obs_norm (absent before they existed: shared, off)}, policy
 (MultiAgentPolicy.state_dict()), counters (with train_s), rng {python, numpy, torch}, train (TrainConfig as a dict),
 config (Config.to_dict()), phis (each AV's SVO [rad]). The policy file ("cosim-policy", same version): spec, nets,
 counters, train, config, phis.
@@ -103,7 +103,10 @@ def export_policy(src: Path, dst: Path, dtype: torch.dtype = torch.float16, **ch
         payload = policy_payload(payload)
     elif payload.get("format") != POLICY_FORMAT:
         raise CheckpointError(f"{src}: neither a {POLICY_FORMAT} file nor a {FORMAT} checkpoint")
-    nets = [{k: v.to(dtype) if v.is_floating_point() else v for k, v in sd.items()} for sd in payload["nets"]]
+    # The input's running statistics (ObsNorm: a few kB) stay as they are: float16 would turn a long run's sample
+    # count into inf, and the standardisation the weights learned under would drift.
+    nets = [{k: v.to(dtype) if v.is_floating_point() and not k.startswith("obs_norm.") else v for k, v in sd.items()}
+            for sd in payload["nets"]]
     with atomic_path(dst) as tmp:
         _save({**payload, **changed, "nets": nets, "dtype": str(dtype).removeprefix("torch.")}, tmp)
 
@@ -155,7 +158,9 @@ def _checked_checkpoint(payload: Any, path: Path, expect: dict[str, Any] | None 
 
 
 # Spec entries added after checkpoints were first written, with what the checkpoints without them trained with.
-SPEC_DEFAULTS: dict[str, Any] = {"shared_encoder": True}
+SPEC_DEFAULTS: dict[str, Any] = {"shared_encoder": True, "obs_norm": False}
+# Spec entries that are keys of the config's train section.
+TRAIN_SPEC_KEYS = frozenset({"shared_policy", "feature_dim", "head_hidden", "shared_encoder", "obs_norm"})
 
 
 def check_spec(payload: dict[str, Any], expect: dict[str, Any], path: Path) -> None:
@@ -164,8 +169,11 @@ def check_spec(payload: dict[str, Any], expect: dict[str, Any], path: Path) -> N
     for key, want in expect.items():
         have = spec.get(key, SPEC_DEFAULTS.get(key))
         if _norm(have) != _norm(want):
+            # The network's train keys: the way to a run the checkpoint fits is to set the key as it trained.
+            way = (f" (it trained with train.{key}={str(have).lower() if isinstance(have, bool) else have})"
+                   if key in TRAIN_SPEC_KEYS else "")
             raise CheckpointError(f"checkpoint {path}: incompatible {key}: checkpoint has {have!r}, "
-                                  f"this run needs {want!r}")
+                                  f"this run needs {want!r}{way}")
 
 
 def _norm(value: Any) -> Any:
@@ -193,7 +201,8 @@ def _tuples(value: Any) -> Any:
 def build_net(spec: dict[str, Any]) -> ActorCritic:
     return ActorCritic(tuple(spec["obs_shape"]), spec["n_actions"], feature_dim=spec["feature_dim"],
                        head_hidden=spec["head_hidden"],
-                       shared_encoder=spec.get("shared_encoder", SPEC_DEFAULTS["shared_encoder"]))
+                       shared_encoder=spec.get("shared_encoder", SPEC_DEFAULTS["shared_encoder"]),
+                       obs_norm=spec.get("obs_norm", SPEC_DEFAULTS["obs_norm"]))
 
 
 def _checked_policy_file(payload: Any, path: Path) -> dict[str, Any]:

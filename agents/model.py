@@ -8,7 +8,9 @@ scale, and not reproducible bit for bit run to run on CPUs with bfloat16 instruc
 depth axis and channels its channels. The flatten size follows from the observation shape by a dummy forward,
 so the paper preset (10, 4, 64, 512) and the CPU default (5, 4, 32, 128) build from the same code. The actor
 and the critic share the encoder, as the paper's network does, unless `shared_encoder=False`
-(`train.shared_encoder`).
+(`train.shared_encoder`). With `obs_norm=True` (`train.obs_norm`) the input is standardised pixel by pixel first
+(`ObsNorm`: running statistics the learner updates, saved with the weights), as SB3's `VecNormalize` does for
+vector observations; without it, as in the paper, the input is only scaled to [0, 1].
 """
 
 from __future__ import annotations
@@ -76,26 +78,92 @@ class VelocityMapEncoder(nn.Module):
         self.conv.to(memory_format=torch.channels_last_3d)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        # (B, C, F, H, W): channels as Conv3D channels, frames as depth. Channels-last: oneDNN's Conv3D on the CPU
-        # runs about twice as fast in this layout. One copy makes the type and the layout, the scale is in place:
-        # the input's preparation was about half of a small batch's forward in three copies. The copy walks the
-        # input in the order it writes (B, F, H, W, C), about twice as fast as gathering into channels_last_3d
-        # directly, and writes the dtype autocast would cast it to (bfloat16 in training: half the bytes, and no
-        # second copy by autocast).
-        device = obs.device.type
-        dtype = torch.get_autocast_dtype(device) if torch.is_autocast_enabled(device) else torch.float32
-        x = obs.permute(0, 1, 3, 4, 2).to(dtype, memory_format=torch.contiguous_format).permute(0, 4, 1, 2, 3)
-        if obs.dtype == torch.uint8:
-            x.div_(255.0)
+        return self.encode(prepare(obs))
+
+    def encode(self, x: torch.Tensor) -> torch.Tensor:
+        """`prepare`'s output -> (B, feature_dim)."""
         return self.fc(self.conv(x))
+
+
+def prepare(obs: torch.Tensor, norm: ObsNorm | None = None) -> torch.Tensor:
+    """(B, F, C, H, W) observations of any dtype -> the encoder's input (B, C, F, H, W): channels as Conv3D
+    channels, frames as depth, in [0, 1] (uint8 scaled by 1/255), then standardised by `norm` where given."""
+    # Channels-last: oneDNN's Conv3D on the CPU runs about twice as fast in this layout. One copy makes the type
+    # and the layout, the scale (and the standardisation) in place: the input's preparation was about half of a
+    # small batch's forward in three copies. The copy walks the input in the order it writes (B, F, H, W, C),
+    # about twice as fast as gathering into channels_last_3d directly, and writes the dtype autocast would cast it
+    # to (bfloat16 in training: half the bytes, and no second copy by autocast).
+    device = obs.device.type
+    dtype = torch.get_autocast_dtype(device) if torch.is_autocast_enabled(device) else torch.float32
+    # copy=True: `to` returns a float input of the right dtype as it is, a view the in-place steps would write to.
+    x = obs.permute(0, 1, 3, 4, 2).to(dtype, memory_format=torch.contiguous_format, copy=True)
+    raw = obs.dtype == torch.uint8
+    if norm is not None:
+        norm.standardize_(x, 1 / 255.0 if raw else 1.0)
+    elif raw:
+        x.div_(255.0)
+    return x.permute(0, 4, 1, 2, 3)
+
+
+class ObsNorm(nn.Module):
+    """Running mean and variance of each pixel of each channel (frames pooled: a stack holds the same frames,
+    shifted), the encoder's input standardised by them: (x - mean) / max(std, `min_std`), clipped to +-`clip`.
+
+    Why: on the default scenario 93% of the input's values are 0 and nine in ten of the rest are road, the same
+    in most scenes, so at the paper's initialisation the encoder's features barely vary from scene to scene (their
+    spread across scenes a third of their size, 31-32% of its units off in every scene) and the policy starts out
+    blind to them; standardised, the spread is nine tenths of the size and 5-8% of the units are off everywhere
+    (scripts/probe_features.py, docs/results.md). The floor on the std keeps a pixel that has rarely held a vehicle
+    from turning one into a spike, the clip bounds the rest. `update(frames)` takes in a batch (the learner calls it
+    after each update, with the newest frame of every sample the update trained on, so that a batch is acted on and
+    trained on under the same statistics); until the first, the input is only scaled to [0, 1]."""
+
+    def __init__(self, channels: int, height: int, width: int, *, min_std: float = 0.01, clip: float = 5.0) -> None:
+        super().__init__()
+        self.min_std, self.clip = min_std, clip
+        # (H, W, C): the layout `prepare` standardises in.
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("mean", torch.zeros(height, width, channels))
+        self.register_buffer("var", torch.ones(height, width, channels))
+
+    @torch.no_grad()
+    def update(self, frames: torch.Tensor) -> None:
+        """Take in frames (N, C, H, W) of the observation's dtype (uint8 in [0, 255], else in [0, 1]), merged
+        with the statistics so far as Chan et al.'s parallel algorithm does (SB3's `RunningMeanStd`)."""
+        x = frames.to(self.mean.device, torch.float32).permute(0, 2, 3, 1)
+        if frames.dtype == torch.uint8:
+            x = x / 255.0
+        n = x.shape[0]
+        if n == 0:
+            return
+        batch_var, batch_mean = torch.var_mean(x, dim=0, correction=0)
+        total = self.count + n
+        delta = batch_mean - self.mean
+        seen = float(self.count)
+        self.var.copy_((self.var * seen + batch_var * n + delta.square() * (seen * n / float(total))) / float(total))
+        self.mean.add_(delta * (n / float(total)))
+        self.count.copy_(total)
+
+    def standardize_(self, x: torch.Tensor, unit: float = 1.0) -> torch.Tensor:
+        """In place on x (B, F, H, W, C), whose values times `unit` are in [0, 1]; before any `update` only scaled
+        by `unit`."""
+        if self.count == 0:
+            return x.mul_(unit)
+        # One multiply-add in x's own dtype, the scale folded in: subtracting and dividing in place with float32
+        # statistics on a bfloat16 input took about six times as long as the plain preparation (mixed-dtype loops).
+        inv = self.var.sqrt().clamp(min=self.min_std).reciprocal()
+        torch.addcmul((-self.mean * inv).to(x.dtype), x, (inv * unit).to(x.dtype), out=x)
+        return x.clamp_(-self.clip, self.clip)
 
 
 class ActorCritic(nn.Module):
     """Feature extractor (`VelocityMapEncoder`) under an actor head (logits) and a critic head (value); with
-    `shared_encoder=False` the critic has an encoder of its own (`critic_features`)."""
+    `shared_encoder=False` the critic has an encoder of its own (`critic_features`); with `obs_norm=True` both
+    read the input standardised by `obs_norm` (an `ObsNorm`, else None)."""
 
     def __init__(self, obs_shape: tuple[int, ...], n_actions: int = 5, *, feature_dim: int = 512,
-                 head_hidden: int = 256, bf16: bool = False, shared_encoder: bool = True) -> None:
+                 head_hidden: int = 256, bf16: bool = False, shared_encoder: bool = True,
+                 obs_norm: bool = False) -> None:
         super().__init__()
         # Run the forward pass in bfloat16 (weights and outputs stay float32): about twice as fast on CPUs with
         # AMX / AVX512-BF16 (scripts/bench_train.py); the trainer turns it on there, evaluation never does.
@@ -107,6 +175,7 @@ class ActorCritic(nn.Module):
         # Separate: the critic's regression no longer shapes the actor's features (MAPPO's default; Andrychowicz et
         # al. 2021 found shared ones worse), at twice the encoder's work per sample.
         self.critic_features = None if shared_encoder else VelocityMapEncoder(self.obs_shape, feature_dim)
+        self.obs_norm = ObsNorm(*self.obs_shape[1:]) if obs_norm else None
         self.actor = nn.Sequential(_init(nn.Linear(feature_dim, head_hidden), relu_gain), nn.ReLU(),
                                    _init(nn.Linear(head_hidden, n_actions), 0.01))
         self.critic = nn.Sequential(_init(nn.Linear(feature_dim, head_hidden), relu_gain), nn.ReLU(),
@@ -125,14 +194,16 @@ class ActorCritic(nn.Module):
         """(B, F, C, H, W) -> logits (B, A), values (B,), float32; `float32`: without bfloat16 autocast even where
         the network trains with it (validation plays as evaluation does)."""
         with self._precision(obs, float32):
-            h = self.features(obs)
-            logits, values = self.actor(h), self.critic(self._critic_features(obs, h)).squeeze(-1)
+            x = prepare(obs, self.obs_norm)
+            h = self.features.encode(x)
+            logits, values = self.actor(h), self.critic(self._critic_features(x, h)).squeeze(-1)
         return logits.float(), values.float()
 
-    def _critic_features(self, obs: torch.Tensor, actor_features: torch.Tensor | None = None) -> torch.Tensor:
+    def _critic_features(self, x: torch.Tensor, actor_features: torch.Tensor | None = None) -> torch.Tensor:
+        """The critic's features of `prepare`'s output `x`."""
         if self.critic_features is not None:
-            return self.critic_features(obs)
-        return self.features(obs) if actor_features is None else actor_features
+            return self.critic_features.encode(x)
+        return self.features.encode(x) if actor_features is None else actor_features
 
     @property
     def shared_encoder(self) -> bool:
@@ -141,7 +212,7 @@ class ActorCritic(nn.Module):
     def value(self, obs: torch.Tensor) -> torch.Tensor:
         """(B, F, C, H, W) -> (B,), float32."""
         with self._precision(obs):
-            return self.critic(self._critic_features(obs)).squeeze(-1).float()
+            return self.critic(self._critic_features(prepare(obs, self.obs_norm))).squeeze(-1).float()
 
     @torch.no_grad()
     def act(self, obs: np.ndarray | torch.Tensor, greedy: bool = False,

@@ -100,7 +100,8 @@ class MultiAgentPolicy:
         n_nets = 1 if self.shared else n_agents
         self.bf16 = use_bf16(tc.precision, tc.device) and _bf16_sound(obs_shape, n_actions, tc, self.device)
         self.nets = [ActorCritic(obs_shape, n_actions, feature_dim=tc.feature_dim, head_hidden=tc.head_hidden,
-                                 bf16=self.bf16, shared_encoder=tc.shared_encoder).to(self.device)
+                                 bf16=self.bf16, shared_encoder=tc.shared_encoder,
+                                 obs_norm=tc.obs_norm).to(self.device)
                      for _ in range(n_nets)]
         self.acting = [] if self.shared else [copy.deepcopy(net).requires_grad_(False) for net in self.nets]
         self.optimizers = [OPTIMIZERS[tc.optimizer](net.parameters(), tc) for net in self.nets]
@@ -237,6 +238,8 @@ class MultiAgentPolicy:
                                     ("entropy", terms.entropy), ("approx_kl", terms.approx_kl),
                                     ("clip_fraction", terms.clip_fraction), ("grad_norm", grad_norm)):
                     totals[name] = totals.get(name, 0.0) + float(value.detach())
+        if net.obs_norm is not None:  # after the update: the next batch is acted on and trained on alike
+            net.obs_norm.update(obs[:, -1])
         with torch.no_grad():
             predicted = values[flat].to(self.device)  # as the critic predicted them, before this update's vn stats
             ret_dev = ret.to(self.device)

@@ -57,7 +57,11 @@ class VelocityMapExtractor(BaseFeaturesExtractor):
 def ppo_kwargs(tc: TrainConfig, n_steps: int, batch: int) -> dict[str, Any]:
     """SB3 PPO's arguments from the config's `train:` section: the same network (the paper's encoder, then one
     hidden layer for the actor and one for the critic) and the same PPO settings as `cosim train`; `batch` is
-    the agent-samples one rollout of `n_steps` per sub-env collects."""
+    the agent-samples one rollout of `n_steps` per sub-env collects. `train.obs_norm` has no counterpart here
+    (`ConfigError`): SB3's `VecNormalize` standardises without `agents.model.ObsNorm`'s floor on the std."""
+    if tc.obs_norm:
+        raise ConfigError("train.obs_norm: true is cosim train's own input standardisation; SB3's PPO here takes "
+                          "train.obs_norm: false (SB3's VecNormalize is the way to standardise observations there)")
     return {"n_steps": n_steps, "batch_size": max(1, batch // tc.ppo_minibatches), "n_epochs": tc.ppo_epochs,
             "learning_rate": tc.lr, "gamma": tc.gamma, "gae_lambda": tc.gae_lambda, "clip_range": tc.clip_range,
             "ent_coef": tc.entropy_coef, "vf_coef": tc.value_coef, "max_grad_norm": tc.max_grad_norm,

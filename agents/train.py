@@ -437,7 +437,7 @@ class _Run:
             self.spec = {"agents": list(spec.agents), "obs_shape": list(spec.obs_shape), "obs_dtype": spec.obs_dtype,
                          "n_actions": spec.n_actions, "shared_policy": tc.shared_policy,
                          "feature_dim": tc.feature_dim, "head_hidden": tc.head_hidden,
-                         "shared_encoder": tc.shared_encoder}
+                         "shared_encoder": tc.shared_encoder, "obs_norm": tc.obs_norm}
             self.policy = MultiAgentPolicy(len(spec.agents), spec.obs_shape, spec.n_actions, tc, tc.device)
             # Which one `auto` chose decides whether the run is reproducible bit for bit (README).
             log.info("forward passes in %s (train.precision: %s)",
@@ -490,7 +490,8 @@ class _Run:
         path = meta["path"]
         try:
             check_spec({"spec": meta["spec"]}, {k: self.spec[k] for k in ("obs_shape", "n_actions", "feature_dim",
-                                                                          "head_hidden", "shared_encoder")},
+                                                                          "head_hidden", "shared_encoder",
+                                                                          "obs_norm")},
                        Path(path))
         except CheckpointError as exc:
             raise _from_config(exc) if meta.get("configured") else exc from None

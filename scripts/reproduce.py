@@ -75,17 +75,22 @@ class Recipe:
                 *(a.format(out=out) for a in self.args)]
 
 
+# The committed runs trained before configs/default.yaml turned train.obs_norm on.
+BEFORE_OBS_NORM = "train.obs_norm=false"
+
+
 def _default(angle: str, seed: int) -> Run:
-    """Today's default config (the headway cost on) at one angle and seed, 4,008 episodes."""
-    return Run(f"hw1_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}"), 4008)
+    """The default config as it was (the headway cost on, the input not standardised) at one angle and seed, 4,008
+    episodes."""
+    return Run(f"hw1_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}", BEFORE_OBS_NORM), 4008)
 
 
 def _mixed(angle: str, seed: int, episodes: int = 4008) -> Run:
     """The default run of the same angle and seed fine-tuned on both merging drivers; at the full budget named as
     its committed snapshots are (`mixfull_*`: the committed `mix30k_*` are the 15,000-episode ones)."""
     name = {4008: "mix", 30000: "mixfull"}.get(episodes, f"mix{episodes // 1000}k")
-    return Run(f"{name}_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}"), episodes,
-               "configs/mixed_merger.yaml", _default(angle, seed))
+    return Run(f"{name}_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}", BEFORE_OBS_NORM),
+               episodes, "configs/mixed_merger.yaml", _default(angle, seed))
 
 
 HELDOUT = ("--shield", "--out", "{out}")

@@ -613,6 +613,11 @@ class TrainConfig(_Section):
         True, description="one Conv3D encoder under the actor's and the critic's heads (the paper's network); false: "
         "each its own (MAPPO's default), twice the encoder's work per sample; on the default scenario it reached no "
         "safe policy sooner (docs/results.md)")
+    obs_norm: StrictBool = Field(
+        False, description="standardise the network's input pixel by pixel by running statistics the learner keeps "
+        "(as SB3's VecNormalize does for vector observations), saved with the weights; false: scaled to [0, 1] only, "
+        "as in the paper and every run before the key (configs/default.yaml turns it on: a safe policy in fewer "
+        "episodes, docs/results.md)")
     max_restarts: Int = Field(100, ge=0, description="worker restarts tolerated over a run before it is stopped")
     step_timeout: Number = Field(
         60.0, gt=0, description="a worker silent this long is killed and restarted like a crashed one [s]")

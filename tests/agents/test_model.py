@@ -80,6 +80,49 @@ def test_the_critics_loss_shapes_the_actors_features_only_through_a_shared_encod
         torch.testing.assert_close(net.value(torch.ones(2, 2, 4, 8, 16)), net(torch.ones(2, 2, 4, 8, 16))[1])
 
 
+def test_obs_norm_keeps_each_pixels_running_mean_and_variance_over_batches() -> None:
+    # Chan's merge of two batches equals the statistics of both at once, per channel and pixel; uint8 as [0, 1].
+    net = ActorCritic((2, 3, 8, 16), feature_dim=32, head_hidden=16, obs_norm=True)
+    gen = torch.Generator().manual_seed(0)
+    a, b = (torch.randint(0, 256, (n, 3, 8, 16), dtype=torch.uint8, generator=gen) for n in (7, 4))
+    net.obs_norm.update(a)
+    net.obs_norm.update(b)
+    both = torch.cat([a, b]).double() / 255
+    assert float(net.obs_norm.count) == 11
+    torch.testing.assert_close(net.obs_norm.mean.permute(2, 0, 1).double(), both.mean(0), atol=1e-6, rtol=0)
+    torch.testing.assert_close(net.obs_norm.var.permute(2, 0, 1).double(), both.var(0, correction=0), atol=1e-6,
+                               rtol=0)
+
+
+@pytest.mark.parametrize("bf16", [False, True])
+def test_obs_norm_standardises_the_first_convs_input_with_a_floor_and_a_clip(bf16: bool) -> None:
+    net = ActorCritic((2, 2, 8, 16), feature_dim=32, head_hidden=16, bf16=bf16, obs_norm=True)
+    seen = []
+    net.features.conv[0].register_forward_pre_hook(lambda module, args: seen.append(args[0]))
+    raw = torch.randint(0, 256, (3, 2, 2, 8, 16), dtype=torch.uint8)
+    with torch.no_grad():
+        net(raw)  # no statistics yet: scaled to [0, 1] only
+        torch.testing.assert_close(seen[-1].float(), raw.permute(0, 2, 1, 3, 4).float() / 255, atol=4e-3, rtol=4e-3)
+        # Channel 0 varies, channel 1 is constant (std 0, so the floor of 0.01 applies).
+        frames = torch.stack([torch.tensor([[0.0] * 16] * 8), torch.full((8, 16), 0.5)]).expand(4, 2, 8, 16).clone()
+        frames[:2, 0] = 1.0  # mean 0.5, std 0.5
+        net.obs_norm.update(frames)
+        x = torch.zeros(1, 2, 2, 8, 16)
+        x[0, :, 0] = 1.0
+        x[0, 0, 1, 0, 0] = 0.6  # (0.6 - 0.5) / 0.01 = 10, clipped to 5
+        x[0, 1, 1, 0, 0] = 0.49
+        given = x.clone()
+        net(x)
+    assert torch.equal(x, given)  # standardised in a copy, never in the caller's tensor
+    got = seen[-1].float()  # (B, C, F, H, W)
+    tol = {"atol": 0.04, "rtol": 0.01} if bf16 else {"atol": 1e-5, "rtol": 0}
+    torch.testing.assert_close(got[0, 0], torch.ones(2, 8, 16), **tol)
+    assert got[0, 1, 0, 0, 0] == 5.0 and abs(float(got[0, 1, 1, 0, 0]) + 1.0) < tol["atol"] + 1e-2
+    assert got.is_contiguous(memory_format=torch.channels_last_3d)
+    with torch.no_grad():  # the critic's value reads the same standardised input
+        torch.testing.assert_close(net.value(x), net(x)[1], atol=1e-2 if bf16 else 1e-6, rtol=0)
+
+
 def test_act_on_read_only_numpy_views() -> None:
     net = ActorCritic((2, 4, 8, 16), feature_dim=32, head_hidden=16)
     obs = np.random.default_rng(0).random((5, 2, 4, 8, 16), dtype=np.float32)

@@ -76,3 +76,12 @@ def test_a_file_that_is_no_sb3_model_is_one_clear_error(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"model.zip: not a zip file; --policy sb3 takes a Stable-Baselines3 "
                                           r"model, the .zip that scripts/train_sb3.py saves"):
         load_actor(text, (4, 3, 64, 512), 5)
+
+
+def test_cosims_own_input_standardisation_is_refused_by_name_not_silently_dropped() -> None:
+    from agents.config import train_config
+    from agents.sb3 import ppo_kwargs
+    from cosim.config import load_config
+
+    with pytest.raises(ConfigError, match="train.obs_norm: true is cosim train's own input standardisation"):
+        ppo_kwargs(train_config(load_config(None, {"train.obs_norm": True})), 128, 512)

@@ -367,6 +367,30 @@ def test_separate_encoders_train_save_and_load_and_a_shared_policy_cannot_start_
     check_spec({"spec": {"feature_dim": 32}}, {"feature_dim": 32, "shared_encoder": True}, tmp_path / "old.pt")
 
 
+def test_obs_norm_learns_the_inputs_statistics_keeps_them_exact_in_float16_files_and_must_match(tmp_path: Path) -> None:
+    from agents.checkpoint import check_spec, export_policy
+
+    run = train(cfg_with(obs_norm=True), tmp_path / "norm", workers=1, episodes=2,
+                env_factory=make_fake_env(n_agents=2), progress=False)
+    payload = read_checkpoint(run.checkpoint)
+    stats = {k: v for k, v in payload["policy"]["nets"][0].items() if k.startswith("obs_norm.")}
+    assert float(stats["obs_norm.count"]) == payload["counters"]["samples"]  # every trained sample's newest frame
+    assert stats["obs_norm.var"].min() < stats["obs_norm.var"].max()  # per pixel, not one figure
+    export_policy(run.checkpoint, tmp_path / "norm.pt")
+    policies, meta = load_policy(tmp_path / "norm.pt")
+    net = policies["av_0"]
+    assert meta["spec"]["obs_norm"] is True and net.obs_norm is not None
+    assert all(torch.equal(net.state_dict()[k], v) for k, v in stats.items())  # not rounded to float16
+    plain = train(cfg_with(), tmp_path / "plain", workers=1, episodes=1, env_factory=make_fake_env(n_agents=2),
+                  progress=False)
+    with pytest.raises(CheckpointError, match=r"incompatible obs_norm: checkpoint has False, this run needs True \(it "
+                                              r"trained with train.obs_norm=false\)"):
+        train(cfg_with(obs_norm=True), tmp_path / "third", workers=1, episodes=1, progress=False,
+              env_factory=make_fake_env(n_agents=2), init_from=plain.checkpoint)
+    # Checkpoints from before the key trained on the unstandardised input: read as off.
+    check_spec({"spec": {"feature_dim": 32}}, {"feature_dim": 32, "obs_norm": False}, tmp_path / "old.pt")
+
+
 def test_a_resumed_fine_tune_still_names_the_policy_it_started_from(tmp_path: Path,
                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     # The resume rewrote net.json from its own command line, which has no --init-from: the fine-tune's origin was lost.
