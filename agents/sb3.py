@@ -5,7 +5,8 @@ Contract: `make_vec_env(config, envs, seed)` gives an SB3 `VecEnv` over `envs` c
 process of its own when there are several (libsumo allows one SUMO per process), every AV a sub-env
 (SuperSuit's `black_death_v3` keeps an AV that has left with zero observations until its episode ends,
 `pettingzoo_env_to_vec_env_v1` makes the AVs sub-envs, so one network serves them all); copy i plays its own
-episode seeds, below the evaluation seeds. `ppo_kwargs(train_config)` sets SB3's PPO as `cosim train` is set, with
+episode seeds, below the evaluation seeds. `ppo_kwargs(train_config)` sets SB3's PPO as `cosim train` is set
+(`sb3_train_config` first leaves out `train.obs_norm`, which SB3's PPO here has no counterpart of), with
 `VelocityMapExtractor` (the paper's Conv3D stack) under its policy; a saved model loads by `load_actor(path)`
 as an actor with `ActorCritic.act`'s signature, and a file that is no SB3 model (cosim's own policy.pt, say) is a
 `ConfigError` naming it and what `--policy sb3` takes.
@@ -14,6 +15,7 @@ as an actor with `ActorCritic.act`'s signature, and a file that is no SB3 model 
 from __future__ import annotations
 
 import functools
+import logging
 import zipfile
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -38,6 +40,8 @@ from cosim.config import EVAL_SEED_START, Config
 from cosim.errors import ConfigError
 from cosim.files import file_sha256
 
+log = logging.getLogger(__name__)
+
 EPISODES_PER_COPY = 1_000_000  # episode seeds set aside for each env copy of a run
 
 
@@ -54,14 +58,21 @@ class VelocityMapExtractor(BaseFeaturesExtractor):
         return self.encoder(obs / self.scale)
 
 
+def sb3_train_config(tc: TrainConfig) -> TrainConfig:
+    """The train section as SB3's PPO here takes it: without `train.obs_norm`, cosim's own input standardisation
+    (SB3's `VecNormalize` standardises without `agents.model.ObsNorm`'s floor on the std, and its statistics would
+    not travel with the model to `cosim evaluate --policy sb3`), with a warning where the config had it on."""
+    if tc.obs_norm:
+        log.warning("train.obs_norm: cosim train's input standardisation has no counterpart in SB3's PPO here; it "
+                    "trains on the input scaled to [0, 1], as the paper's network does")
+    return tc.model_copy(update={"obs_norm": False})
+
+
 def ppo_kwargs(tc: TrainConfig, n_steps: int, batch: int) -> dict[str, Any]:
     """SB3 PPO's arguments from the config's `train:` section: the same network (the paper's encoder, then one
     hidden layer for the actor and one for the critic) and the same PPO settings as `cosim train`; `batch` is
-    the agent-samples one rollout of `n_steps` per sub-env collects. `train.obs_norm` has no counterpart here
-    (`ConfigError`): SB3's `VecNormalize` standardises without `agents.model.ObsNorm`'s floor on the std."""
-    if tc.obs_norm:
-        raise ConfigError("train.obs_norm: true is cosim train's own input standardisation; SB3's PPO here takes "
-                          "train.obs_norm: false (SB3's VecNormalize is the way to standardise observations there)")
+    the agent-samples one rollout of `n_steps` per sub-env collects. `train.obs_norm` has no counterpart here: SB3's
+    PPO takes the input scaled to [0, 1], as the paper's network does (`sb3_train_config` says so)."""
     return {"n_steps": n_steps, "batch_size": max(1, batch // tc.ppo_minibatches), "n_epochs": tc.ppo_epochs,
             "learning_rate": tc.lr, "gamma": tc.gamma, "gae_lambda": tc.gae_lambda, "clip_range": tc.clip_range,
             "ent_coef": tc.entropy_coef, "vf_coef": tc.value_coef, "max_grad_norm": tc.max_grad_norm,

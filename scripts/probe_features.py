@@ -32,8 +32,7 @@ from agents.checkpoint import load_policy  # noqa: E402
 from agents.model import ActorCritic, prepare  # noqa: E402
 from cosim.config import load_config  # noqa: E402
 from cosim.config.types import EVAL_SEED_START  # noqa: E402
-
-IDLE = 1
+from cosim.environment.control import N_ACTIONS, Action  # noqa: E402
 
 
 def scenes(config: str, episodes: int) -> torch.Tensor:
@@ -47,13 +46,14 @@ def scenes(config: str, episodes: int) -> torch.Tensor:
             obs, _ = env.reset(seed=EVAL_SEED_START + 5_000_000 + ep)
             while env.agents:
                 seen += [obs[a] for a in env.agents]
-                obs, *_ = env.step({a: IDLE for a in env.agents})
+                obs, *_ = env.step({a: int(Action.IDLE) for a in env.agents})
     finally:
         env.close()
     return torch.from_numpy(np.stack(seen))
 
 
 def probe(net: ActorCritic, x: torch.Tensor) -> str:
+    """The module doc's measures of `net` on scenes `x`, as one line."""
     with torch.no_grad():
         net = net.eval()
         features = net.features.encode(prepare(x, net.obs_norm)).float()
@@ -84,7 +84,7 @@ def main() -> None:
     for obs_norm in (False, True):
         for seed in args.init_seeds:
             torch.manual_seed(seed)
-            net = ActorCritic(tuple(x.shape[1:]), 5, obs_norm=obs_norm)
+            net = ActorCritic(tuple(x.shape[1:]), N_ACTIONS, obs_norm=obs_norm)
             if net.obs_norm is not None:
                 net.obs_norm.update(x[:, -1])
             print(f"fresh, init seed {seed}, obs_norm {str(obs_norm).lower()}: {probe(net, x)}")

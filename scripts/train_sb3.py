@@ -35,9 +35,9 @@ def train_sb3(config: Config, out: Path, steps: int, envs: int, seed: int) -> Pa
     from stable_baselines3.common.utils import set_random_seed
 
     from agents.config import train_config
-    from agents.sb3 import make_vec_env, ppo_kwargs
+    from agents.sb3 import make_vec_env, ppo_kwargs, sb3_train_config
 
-    tc = train_config(config)  # lr, gamma, epochs, network sizes... as `cosim train` uses them
+    tc = sb3_train_config(train_config(config))  # lr, gamma, epochs, network sizes... as `cosim train` uses them
     vec = make_vec_env(config, envs, seed)
     set_random_seed(seed)  # not PPO(seed=...): SuperSuit's process vector env has no seed() to pass it on to
     try:

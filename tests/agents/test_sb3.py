@@ -78,10 +78,17 @@ def test_a_file_that_is_no_sb3_model_is_one_clear_error(tmp_path: Path) -> None:
         load_actor(text, (4, 3, 64, 512), 5)
 
 
-def test_cosims_own_input_standardisation_is_refused_by_name_not_silently_dropped() -> None:
+def test_cosims_own_input_standardisation_is_left_out_of_sb3_by_name_not_silently(
+        caplog: pytest.LogCaptureFixture) -> None:
     from agents.config import train_config
-    from agents.sb3 import ppo_kwargs
+    from agents.sb3 import sb3_train_config
     from cosim.config import load_config
 
-    with pytest.raises(ConfigError, match="train.obs_norm: true is cosim train's own input standardisation"):
-        ppo_kwargs(train_config(load_config(None, {"train.obs_norm": True})), 128, 512)
+    tc = train_config(load_config("configs/default.yaml"))
+    assert tc.obs_norm  # the default config's, which scripts/train_sb3.py must still train with
+    sb3 = sb3_train_config(tc)
+    assert not sb3.obs_norm and sb3.lr == tc.lr and tc.obs_norm
+    assert "train.obs_norm: cosim train's input standardisation has no counterpart in SB3's PPO" in caplog.text
+    caplog.clear()
+    sb3_train_config(train_config(load_config(None)))
+    assert "obs_norm" not in caplog.text
