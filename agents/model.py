@@ -137,12 +137,12 @@ class ObsNorm(nn.Module):
         if n == 0:
             return
         batch_var, batch_mean = torch.var_mean(x, dim=0, correction=0)
-        total = self.count + n
-        delta = batch_mean - self.mean
         seen = float(self.count)
-        self.var.copy_((self.var * seen + batch_var * n + delta.square() * (seen * n / float(total))) / float(total))
-        self.mean.add_(delta * (n / float(total)))
-        self.count.copy_(total)
+        total = seen + n
+        delta = batch_mean - self.mean
+        self.var.copy_((self.var * seen + batch_var * n + delta.square() * (seen * n / total)) / total)
+        self.mean.add_(delta * (n / total))
+        self.count.fill_(total)
 
     def standardize_(self, x: torch.Tensor, unit: float = 1.0) -> torch.Tensor:
         """In place on x (B, F, H, W, C), whose values times `unit` are in [0, 1]; before any `update` only scaled

@@ -57,7 +57,7 @@ def probe(net: ActorCritic, x: torch.Tensor) -> str:
     with torch.no_grad():
         net = net.eval()
         features = net.features.encode(prepare(x, net.obs_norm)).float()
-        logits, _ = net(x, float32=True)
+        logits = net.actor(features)  # the forward's logits, without encoding the scenes a second time
     greedy = np.bincount(logits.argmax(-1).numpy(), minlength=logits.shape[1]) / len(x)
     dead = float((features.max(0).values <= 0).float().mean())
     spread = float(features.std(0).mean() / features.abs().mean())
@@ -75,8 +75,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     x = scenes(args.config, args.episodes)
-    shown = x.float() / 255 if x.dtype == torch.uint8 else x
-    nonzero = (shown > 0).float()
+    nonzero = (x > 0).float()
     channels = load_config(args.config).observation.channels
     print(f"{len(x)} scenes of {args.episodes} all-idle episodes ({args.config}); non-zero input values: "
           f"{float(nonzero.mean()):.1%}, of which per channel: " + ", ".join(
