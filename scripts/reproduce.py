@@ -2,7 +2,7 @@
 them, every part resumable.
 
     python scripts/reproduce.py --list
-    python scripts/reproduce.py heldout_headway                 # the README's headline table
+    python scripts/reproduce.py heldout_obs_norm                # the README's headline table
     python scripts/reproduce.py phi_grid --parallel 3 --runs runs/reproduce --out runs/phi_grid
 
 A recipe names its training runs (config, `--set`, episodes, the weights a fine-tune starts from) and the
@@ -41,6 +41,7 @@ ANGLES = {"phi0": "0", "pi8": "0.3927", "pi4": "0.7854", "3pi8": "1.1781", "pi2"
 _BESIDE = Path(sys.executable).with_name("cosim")
 COSIM = str(_BESIDE) if _BESIDE.is_file() else "cosim"
 SEEDS = (15, 16, 17)  # seeds no earlier run used, fixed before the first of these trained
+OBS_NORM_SEEDS = (50, 51, 52)  # likewise, for today's default (the input standardised)
 
 
 @dataclass(frozen=True)
@@ -85,6 +86,12 @@ def _default(angle: str, seed: int) -> Run:
     return Run(f"hw1_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}", BEFORE_OBS_NORM), 4008)
 
 
+def _current(angle: str, seed: int) -> Run:
+    """Today's configs/default.yaml (the headway cost on, the input standardised) at one angle and seed, 4,008
+    episodes."""
+    return Run(f"on_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}"), 4008)
+
+
 def _mixed(angle: str, seed: int, episodes: int = 4008) -> Run:
     """The default run of the same angle and seed fine-tuned on both merging drivers; at the full budget named as
     its committed snapshots are (`mixfull_*`: the committed `mix30k_*` are the 15,000-episode ones)."""
@@ -107,9 +114,12 @@ def _mixed_longer(episodes: int, what: str) -> Recipe:
 
 
 RECIPES = {
+    "heldout_obs_norm": Recipe(
+        "the paper's claims with today's default, three training seeds per angle, polite and impatient merging "
+        "vehicle, with and without the shield", "results/heldout_obs_norm/heldout.md",
+        tuple(_current(a, s) for a in ("phi0", "pi4") for s in OBS_NORM_SEEDS), "heldout.py", HELDOUT),
     "heldout_headway": Recipe(
-        "the paper's claims, three training seeds per angle, polite and impatient merging vehicle, with and without "
-        "the shield", "results/heldout_headway/heldout.md",
+        "the same before the input was standardised (train.obs_norm off)", "results/heldout_headway/heldout.md",
         tuple(_default(a, s) for a in ("phi0", "pi4") for s in SEEDS), "heldout.py", HELDOUT),
     "phi_grid": Recipe(
         "the trade-off over the SVO angle, one training seed", "results/phi_grid_headway/heldout.md",
