@@ -2,8 +2,9 @@
 
 Contract:
 - `save_checkpoint(path, payload)` writes via a temp file in the same folder and `os.replace`, so a
-  crash mid-write leaves the previous checkpoint intact; beside it goes `policy.pt`, the trained networks
-  with their spec, counters and config but without optimizer, acting copies or RNG states: a few MB for
+  crash mid-write leaves the previous checkpoint intact; beside it goes `policy.pt`, the trained networks (their
+  weights' moving averages with `train.policy_ema`: `played_nets`) with their spec, counters and config but
+  without optimizer, acting copies or RNG states: a few MB for
   evaluation and sharing, where the resumable checkpoint is several times that. Both are written in full
   before either is replaced; a failed write (a full disk) is a `CheckpointError` naming the file and the
   reason, with the previous pair left as it was.
@@ -76,9 +77,18 @@ def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
                               f"{kept}") from None
 
 
+def played_nets(policy: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """The networks of a `MultiAgentPolicy.state_dict()` that a policy file holds: each network's averaged copy where
+    the run keeps one (`train.policy_ema`) and it has begun, else the trained network."""
+    averaged, counts = policy.get("averaged") or [], policy.get("averaged_counts") or []
+    if not averaged:
+        return policy["nets"]
+    return [avg if n else net for net, avg, n in zip(policy["nets"], averaged, counts, strict=True)]
+
+
 def policy_payload(payload: dict[str, Any], **extra: Any) -> dict[str, Any]:
     """The policy file's content (module doc) of a checkpoint payload, with `extra` entries."""
-    return {"format": POLICY_FORMAT, "version": VERSION, "nets": payload["policy"]["nets"],
+    return {"format": POLICY_FORMAT, "version": VERSION, "nets": played_nets(payload["policy"]),
             **{k: payload[k] for k in ("spec", "counters", "train", "config", "phis") if k in payload}, **extra}
 
 
@@ -226,7 +236,7 @@ def load_policy(path: str | Path, device: str = "cpu") -> tuple[dict[str, ActorC
         state = payload["nets"]
     else:
         payload = _checked_checkpoint(payload, path)
-        state = payload["policy"]["nets"]
+        state = played_nets(payload["policy"])
     spec = payload["spec"]
     try:
         nets = []

@@ -15,6 +15,11 @@ Contract (N AVs):
   `train.action_mask` the env's action masks (`Batch.masks`) bound the policy: masked actions get logit -inf when
   acting and in the update's log-probabilities and entropy (`agents.losses.masked_logits`); without it the masks
   are stored and ignored.
+- With `train.policy_ema` each network has an *averaged copy* `averaged[k]`: after every update that trains
+  network k, its weights move toward the trained ones by the decay (TensorFlow's ExponentialMovingAverage warm-up:
+  at most (1 + n) / (10 + n) after n averages; the first copies them) and its input statistics (`ObsNorm`) are
+  the trained network's. Greedy acting (`act(..., greedy=True)`: validation) plays the averaged copies once they
+  have begun, and the policy files hold them (`agents.checkpoint.played_nets`); sampling acts with the trained ones.
 - `update(batch, tc, progress)` runs A2C (one gradient step over the batch) or PPO (`ppo_epochs` passes of
   `ppo_minibatches` minibatches, clipped) for each network that trains this update, with advantages from
   GAE over the batch, advantage normalisation and value normalisation as configured, the learning rate
@@ -29,6 +34,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
+from torch.optim.swa_utils import get_ema_multi_avg_fn
 
 from agents.config import TrainConfig, schedule, use_bf16
 from agents.losses import OPTIMIZERS, ValueNorm, actor_critic_loss, gae, masked_logits, normalize
@@ -73,6 +79,17 @@ class Batch:
             t.zero_()
 
 
+def bucket(n: int) -> int:
+    """`n` rounded up to one of eight sizes per octave (a step of 2^(floor(log2 n) - 3)): at most 1/8 more.
+
+    oneDNN builds its kernels for each input shape it meets and caches them: a forward+backward of the network at a
+    batch size it has not met costs about 1.5 times one at a size it has (0.60 against 0.41 ms per sample, 2 cores of
+    an Intel Xeon with AMX). The update's batch, the samples its episodes made, is a new size almost every time;
+    rounded, the sizes of a whole run fit in a few dozen, each built once."""
+    step = 1 << max(n.bit_length() - 4, 0)
+    return -(-n // step) * step
+
+
 def _bf16_sound(obs_shape: tuple[int, ...], n_actions: int, tc: TrainConfig, device: torch.device) -> bool:
     """Whether this machine's bfloat16 kernels give right gradients for this network (`bf16_gradient_error`):
     if not, `auto` falls back to float32 with a warning and an explicit `bfloat16` is refused."""
@@ -106,6 +123,9 @@ class MultiAgentPolicy:
         self.acting = [] if self.shared else [copy.deepcopy(net).requires_grad_(False) for net in self.nets]
         self.optimizers = [OPTIMIZERS[tc.optimizer](net.parameters(), tc) for net in self.nets]
         self.value_norms = [ValueNorm().to(self.device) if tc.value_norm else None for _ in self.nets]
+        self.ema = tc.policy_ema
+        self.averaged = [copy.deepcopy(net).requires_grad_(False) for net in self.nets] if self.ema else []
+        self.averaged_counts = [0] * len(self.averaged)  # averages taken into each averaged copy so far
 
     def owner(self, agent: int) -> int:
         """Index into `nets` of AV `agent`'s network."""
@@ -125,6 +145,24 @@ class MultiAgentPolicy:
         k = self.owner(agent)
         return self.nets[k] if self.trains(agent, update) else self.acting[k]
 
+    def played_net(self, agent: int, update: int) -> ActorCritic:
+        """The network AV `agent` plays greedily while update `update` is being collected: its averaged copy where
+        `train.policy_ema` keeps one and it has begun, else the network it acts with."""
+        k = self.owner(agent)
+        return self.averaged[k] if self.averaged and self.averaged_counts[k] else self.acting_net(agent, update)
+
+    def _average(self, k: int) -> None:
+        """Move network k's averaged copy toward its trained weights (module doc)."""
+        n, avg, net = self.averaged_counts[k], self.averaged[k], self.nets[k]
+        if n == 0:
+            avg.load_state_dict(net.state_dict())
+        else:
+            decay = min(self.ema, (1 + n) / (10 + n))
+            get_ema_multi_avg_fn(decay)(list(avg.parameters()), [p.detach() for p in net.parameters()], n)
+            for mine, trained in zip(avg.buffers(), net.buffers(), strict=True):
+                mine.copy_(trained)
+        self.averaged_counts[k] = n + 1
+
     def ends_block(self, update: int) -> bool:
         """Whether dissemination follows update `update` (per AV: the last update of its learner's block)."""
         return not self.shared and (update + 1) % self.disseminate_every == 0
@@ -134,12 +172,18 @@ class MultiAgentPolicy:
         k = self.owner(agent)
         self.acting[k].load_state_dict(self.nets[k].state_dict())
 
-    def _groups(self, agents: torch.Tensor, update: int) -> list[tuple[ActorCritic, torch.Tensor]]:
+    def _groups(self, agents: torch.Tensor, update: int,
+                played: bool = False) -> list[tuple[ActorCritic, torch.Tensor | None]]:
+        """The networks in play for AVs `agents` (M,) (`played`: those they play greedily), each with the rows it
+        acts for (None: all of them, the shared network's case, read without a copy of the observations)."""
+        pick = self.played_net if played else self.acting_net
+        if self.shared:
+            return [(pick(0, update), None)]
         nets: dict[int, tuple[ActorCritic, list[int]]] = {}
         for i in range(self.n_agents):
-            net = self.acting_net(i, update)
+            net = pick(i, update)
             nets.setdefault(id(net), (net, []))[1].append(i)
-        out = []
+        out: list[tuple[ActorCritic, torch.Tensor | None]] = []
         for net, members in nets.values():
             sel = torch.isin(agents, torch.tensor(members))
             if sel.any():
@@ -151,15 +195,18 @@ class MultiAgentPolicy:
             greedy: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Sampled actions, their log-probabilities and values (M,) for observations (M, F, C, H, W) of the AVs
         `agents` (M,) under their action masks (M, A; None: every action allowed), one forward per network in
-        play; `greedy`: the most probable actions instead, in float32 as evaluation plays them (validation)."""
+        play; `greedy`: the most probable actions of the networks they play (`played_net`) instead, in float32 as
+        evaluation plays them (validation)."""
         m = len(agents)
         actions, logp, values = torch.zeros(m, dtype=torch.int64), torch.zeros(m), torch.zeros(m)
-        for net, sel in self._groups(agents, update):
-            logits, v = net(obs[sel].to(self.device), float32=greedy)
+        for net, sel in self._groups(agents, update, played=greedy):
+            rows = slice(None) if sel is None else sel
+            logits, v = net(obs[rows].to(self.device), float32=greedy)
+            # validate_args=False: the checks of its arguments were a tenth of a small batch's acting.
             dist = torch.distributions.Categorical(
-                logits=logits if masks is None else masked_logits(logits, self._mask(masks[sel])))
+                logits=logits if masks is None else masked_logits(logits, self._mask(masks[rows])), validate_args=False)
             a = dist.probs.argmax(-1) if greedy else dist.sample()
-            actions[sel], logp[sel], values[sel] = a.cpu(), dist.log_prob(a).cpu(), v.cpu()
+            actions[rows], logp[rows], values[rows] = a.cpu(), dist.log_prob(a).cpu(), v.cpu()
         return actions, logp, values
 
     def _mask(self, masks: torch.Tensor) -> torch.Tensor | None:
@@ -171,7 +218,8 @@ class MultiAgentPolicy:
         """Values (M,) of observations (M, F, C, H, W) of the AVs `agents`, in the critic's scale."""
         values = torch.zeros(len(agents))
         for net, sel in self._groups(agents, update):
-            values[sel] = net.value(obs[sel].to(self.device)).cpu()
+            rows = slice(None) if sel is None else sel
+            values[rows] = net.value(obs[rows].to(self.device)).cpu()
         return values
 
     # -- learning -----------------------------------------------------------------------------------------
@@ -188,6 +236,8 @@ class MultiAgentPolicy:
             sel = batch.valid & agents  # (T, W, N) samples that train network k
             if sel.any():
                 stats.update(self._train_net(k, batch, sel, tc, lr, ent))
+                if self.averaged:
+                    self._average(k)
         return stats
 
     def _train_net(self, k: int, b: Batch, sel: torch.Tensor, tc: TrainConfig, lr: float,
@@ -211,7 +261,10 @@ class MultiAgentPolicy:
             target = vn.normalize(ret.to(self.device))
         else:
             target = ret.to(self.device)
-        obs, actions, old_logp, masks = b.obs[sel], b.actions[sel], b.logp[sel], b.masks[sel]
+        # The samples' observations are read from the batch minibatch by minibatch, not gathered here first: a
+        # copy of every observation of the update (tens of MB) cost more than the standardisation of its input.
+        rows, all_obs = flat.flatten().nonzero().squeeze(1), b.obs.flatten(0, 2)
+        actions, old_logp, masks = b.actions[sel], b.logp[sel], b.masks[sel]
         adv, old_logp, actions = adv.to(self.device), old_logp.to(self.device), actions.to(self.device)
         m = len(adv)
         if tc.algo == "ppo":
@@ -224,7 +277,11 @@ class MultiAgentPolicy:
             order = torch.randperm(m) if minibatches > 1 else torch.arange(m)
             for idx in order.chunk(minibatches):
                 dev_idx = idx.to(self.device)
-                logits, v = net(obs[idx].to(self.device))
+                n = len(idx)
+                # Padded with repeats of its own samples to a size `bucket` rounds to; only the first n outputs
+                # reach the loss, so the gradient is the unpadded one.
+                logits, v = net(all_obs[rows[torch.cat([idx, idx[:bucket(n) - n]])]].to(self.device))
+                logits, v = logits[:n], v[:n]
                 a = adv[dev_idx]
                 terms = actor_critic_loss(logits, v, actions[dev_idx], normalize(a) if tc.normalize_advantage else a,
                                           target[dev_idx], ent, tc.value_coef, old_logp[dev_idx], clip,
@@ -239,7 +296,7 @@ class MultiAgentPolicy:
                                     ("clip_fraction", terms.clip_fraction), ("grad_norm", grad_norm)):
                     totals[name] = totals.get(name, 0.0) + float(value.detach())
         if net.obs_norm is not None:  # after the update: the next batch is acted on and trained on alike
-            net.obs_norm.update(obs[:, -1])
+            net.obs_norm.update(all_obs[rows, -1])
         with torch.no_grad():
             predicted = values[flat].to(self.device)  # as the critic predicted them, before this update's vn stats
             ret_dev = ret.to(self.device)
@@ -248,12 +305,16 @@ class MultiAgentPolicy:
                 "return": float(ret.mean()), "explained_variance": float(explained)}
 
     def state_dict(self) -> dict[str, Any]:
-        return {
+        state = {
             "nets": [net.state_dict() for net in self.nets],
             "acting": [net.state_dict() for net in self.acting],
             "optimizers": [opt.state_dict() for opt in self.optimizers],
             "value_norms": [vn.state_dict() if vn is not None else {} for vn in self.value_norms],
         }
+        if self.averaged:
+            state["averaged"] = [avg.state_dict() for avg in self.averaged]
+            state["averaged_counts"] = list(self.averaged_counts)
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         for modules, key in ((self.nets, "nets"), (self.acting, "acting"), (self.optimizers, "optimizers")):
@@ -264,3 +325,8 @@ class MultiAgentPolicy:
         for vn, sd in zip(self.value_norms, state.get("value_norms", []), strict=False):
             if vn is not None and sd:
                 vn.load_state_dict(sd)
+        # A run that kept no averages (or resumes with train.policy_ema newly set) begins them at its next update.
+        if self.averaged and state.get("averaged"):
+            for avg, sd in zip(self.averaged, state["averaged"], strict=True):
+                avg.load_state_dict(sd)
+            self.averaged_counts = [int(n) for n in state["averaged_counts"]]

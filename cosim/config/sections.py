@@ -618,6 +618,11 @@ class TrainConfig(_Section):
         "(as SB3's VecNormalize does for vector observations), saved with the weights; false: scaled to [0, 1] only, "
         "as in the paper and every run before the key (configs/default.yaml turns it on: a safe policy in fewer "
         "episodes, docs/results.md)")
+    policy_ema: Number = Field(
+        0.0, ge=0, lt=1, description="decay per update of an exponential moving average of the network's weights "
+        "(Polyak averaging, as Nikishin et al. 2018 and TensorFlow's ExponentialMovingAverage, its warm-up "
+        "included): the policy validation plays and best.pt and policy.pt hold, while training acts and learns with "
+        "the trained weights; 0: the trained weights throughout [-]")
     max_restarts: Int = Field(100, ge=0, description="worker restarts tolerated over a run before it is stopped")
     step_timeout: Number = Field(
         60.0, gt=0, description="a worker silent this long is killed and restarted like a crashed one [s]")

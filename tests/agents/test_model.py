@@ -1,10 +1,11 @@
-"""The Conv3D actor-critic: shapes for both presets, dtype handling, gradient flow, the bfloat16 forward."""
+"""The Conv3D actor-critic: shapes for both presets, dtype handling and the input's preparation, gradient flow, the
+bfloat16 forward."""
 
 import numpy as np
 import pytest
 import torch
 
-from agents.model import ActorCritic
+from agents.model import ActorCritic, prepare
 from cosim.config import OBSERVATION_PRESETS
 from cosim.errors import ConfigError
 
@@ -121,6 +122,26 @@ def test_obs_norm_standardises_the_first_convs_input_with_a_floor_and_a_clip(bf1
     assert got.is_contiguous(memory_format=torch.channels_last_3d)
     with torch.no_grad():  # the critic's value reads the same standardised input
         torch.testing.assert_close(net.value(x), net(x)[1], atol=1e-2 if bf16 else 1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("standardised", [False, True])
+def test_the_input_prepared_chunk_by_chunk_is_the_input_prepared_whole(standardised: bool, monkeypatch) -> None:
+    # Chunks of 3 samples over a batch of 10 (the last one short), against the whole batch as one chunk.
+    net = ActorCritic((2, 3, 8, 16), feature_dim=32, head_hidden=16, obs_norm=True)
+    gen = torch.Generator().manual_seed(1)
+    obs = torch.randint(0, 256, (10, 2, 3, 8, 16), dtype=torch.uint8, generator=gen)
+    if standardised:
+        net.obs_norm.update(obs[:6, -1])
+    norm = net.obs_norm if standardised else None
+    whole = prepare(obs, norm)
+    monkeypatch.setattr("agents.model.PREPARE_CHUNK_BYTES", 3 * 2 * 3 * 8 * 16 * 4)
+    chunked = prepare(obs, norm)
+    assert torch.equal(chunked, whole) and chunked.is_contiguous(memory_format=torch.channels_last_3d)
+    reference = obs.permute(0, 2, 1, 3, 4).float() / 255  # (B, C, F, H, W) in [0, 1]
+    if standardised:
+        mean, std = (t.permute(2, 0, 1)[:, None] for t in (net.obs_norm.mean, net.obs_norm.var.sqrt()))
+        reference = ((reference - mean) / std.clamp(min=0.01)).clamp(-5, 5)
+    torch.testing.assert_close(chunked, reference, atol=1e-4, rtol=1e-5)
 
 
 def test_act_on_read_only_numpy_views() -> None:

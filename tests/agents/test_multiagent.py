@@ -1,15 +1,17 @@
 """How the AVs' networks learn from one batch: the shared network uses every live AV's sample; the paper's
 per-AV scheme trains the learner only, freezes the others and disseminates exactly; masking; bootstrapping;
-the same in bfloat16, within its rounding."""
+the same in bfloat16, within its rounding; minibatches padded to few sizes without a change to the update; the
+weights' moving average that greedy acting plays."""
 
 import dataclasses
 
 import pytest
 import torch
 
+from agents.checkpoint import played_nets
 from agents.config import TrainConfig
 from agents.model import BF16_GRADIENT_TOL, bf16_gradient_error
-from agents.multiagent import Batch, MultiAgentPolicy
+from agents.multiagent import Batch, MultiAgentPolicy, bucket
 from cosim.errors import ConfigError
 
 OBS = (2, 4, 8, 16)
@@ -336,3 +338,62 @@ def test_the_update_takes_the_log_probabilities_of_the_distribution_that_acted(a
         assert stats["approx_kl"] == pytest.approx(0.0, abs=1e-7) and stats["clip_fraction"] == 0.0
     else:
         assert stats["approx_kl"] > 1e-3
+
+
+def test_bucket_rounds_up_by_at_most_an_eighth_to_few_sizes() -> None:
+    sizes = [bucket(n) for n in range(1, 2049)]
+    assert all(n <= b <= n + n // 8 for n, b in zip(range(1, 2049), sizes, strict=True))
+    assert len(set(sizes)) <= 8 * 11 + 8  # eight per octave (and 1-8 as they are)
+
+
+@pytest.mark.parametrize("algo", ["a2c", "ppo"])
+def test_padding_a_minibatch_to_its_bucket_leaves_the_update_as_it_was(algo: str, monkeypatch) -> None:
+    tc = small_tc(algo=algo, ppo_minibatches=2, ppo_epochs=2)
+    b = random_batch(T=11)  # 66 samples: PPO's minibatches of 33 padded to 36, A2C's whole batch to 72
+    assert bucket(33) == 36 and bucket(66) == 72
+    _, padded = trained(tc, copy_batch(b))
+    monkeypatch.setattr("agents.multiagent.bucket", lambda n: n)
+    _, unpadded = trained(tc, copy_batch(b))
+    for k, v in unpadded[0].items():
+        torch.testing.assert_close(padded[0][k], v, rtol=1e-5, atol=1e-6)
+
+
+def test_the_averaged_copy_follows_the_trained_weights_and_is_what_greedy_acting_plays() -> None:
+    tc = small_tc(policy_ema=0.9, obs_norm=True)
+    torch.manual_seed(0)
+    policy = MultiAgentPolicy(3, OBS, 5, tc)
+    obs, agents = torch.rand(6, *OBS), torch.tensor([0, 1, 2, 0, 1, 2])
+    # Before any update greedy acting plays the trained network: there is no average yet.
+    assert policy.played_net(0, 0) is policy.nets[0]
+    expected = None
+    for u in range(3):
+        policy.update(random_batch(seed=u), tc, update=u, progress=0.0)
+        now = snapshot(policy.nets)[0]
+        if expected is None:  # the first average is a copy
+            expected = now
+        else:  # then a step toward the trained weights, the decay warmed up as TensorFlow's EMA does
+            decay = min(0.9, (1 + u) / (10 + u))
+            expected = {k: v if k.startswith("obs_norm.") else decay * expected[k] + (1 - decay) * v
+                        for k, v in now.items()}
+        for k, v in policy.averaged[0].state_dict().items():
+            torch.testing.assert_close(v, expected[k])
+    assert not same(policy.averaged[0], snapshot(policy.nets)[0])
+    played = policy.played_net(0, 3)
+    assert played is policy.averaged[0]
+    with torch.no_grad():
+        logits, _ = played(obs, float32=True)
+        _, trained_values = policy.nets[0](obs)
+    greedy, _, _ = policy.act(obs, agents, update=3, greedy=True)
+    assert torch.equal(greedy, logits.argmax(-1))
+    _, _, values = policy.act(obs, agents, update=3)  # sampling acts with the trained network
+    torch.testing.assert_close(values, trained_values)
+    # A policy file holds the averages; a resume gets them back, with their count.
+    state = policy.state_dict()
+    assert played_nets(state)[0] is state["averaged"][0]
+    torch.manual_seed(1)
+    resumed = MultiAgentPolicy(3, OBS, 5, tc)
+    resumed.load_state_dict(state)
+    assert resumed.averaged_counts == [3] and same(resumed.averaged[0], policy.averaged[0].state_dict())
+    # Without train.policy_ema there are none, and the policy file holds the trained network.
+    plain = MultiAgentPolicy(3, OBS, 5, small_tc()).state_dict()
+    assert "averaged" not in plain and played_nets(plain) is plain["nets"]

@@ -248,6 +248,21 @@ def test_resume_continues_the_same_sequence_bitwise(tmp_path: Path) -> None:
     assert episode_rows(tmp_path / "whole") == episode_rows(tmp_path / "split")
 
 
+def test_with_policy_ema_a_resume_goes_on_with_the_averages_and_the_policy_files_hold_them(tmp_path: Path) -> None:
+    cfg = cfg_with(algo="ppo", checkpoint_every=2, policy_ema=0.9)
+    whole = train(cfg, tmp_path / "whole", workers=2, episodes=16, env_factory=make_fake_env(n_agents=2),
+                  progress=False)
+    train(cfg, tmp_path / "split", workers=2, episodes=8, env_factory=make_fake_env(n_agents=2), progress=False)
+    split = train(cfg, tmp_path / "split", workers=2, episodes=16, resume=True, env_factory=make_fake_env(n_agents=2),
+                  progress=False)
+    a, b = read_checkpoint(whole.checkpoint)["policy"], read_checkpoint(split.checkpoint)["policy"]
+    assert a["averaged_counts"] == b["averaged_counts"] == [whole.updates]
+    assert all(torch.equal(v, b["averaged"][0][k]) for k, v in a["averaged"][0].items())
+    held = torch.load(tmp_path / "whole" / "policy.pt", weights_only=True)["nets"][0]
+    assert all(torch.equal(v, a["averaged"][0][k]) for k, v in held.items())
+    assert not all(torch.equal(v, a["nets"][0][k]) for k, v in held.items())
+
+
 def test_resume_refuses_a_changed_config_before_touching_the_run(tmp_path: Path) -> None:
     run = tmp_path / "run"
     train(cfg_with(), run, workers=1, episodes=2, env_factory=make_fake_env(n_agents=2), progress=False)
