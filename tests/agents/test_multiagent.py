@@ -397,3 +397,27 @@ def test_the_averaged_copy_follows_the_trained_weights_and_is_what_greedy_acting
     # Without train.policy_ema there are none, and the policy file holds the trained network.
     plain = MultiAgentPolicy(3, OBS, 5, small_tc()).state_dict()
     assert "averaged" not in plain and played_nets(plain) is plain["nets"]
+
+
+def test_acting_in_a_collecting_region_is_acting_outside_it_and_the_next_region_sees_new_weights() -> None:
+    # In bfloat16 the region reuses each weight's cast (autocast's cache) until it closes.
+    tc = small_tc(precision="bfloat16")
+    torch.manual_seed(0)
+    policy = MultiAgentPolicy(3, BF16_OBS, 5, tc)
+    assert policy.bf16
+    obs, agents = torch.rand(6, *BF16_OBS), torch.tensor([0, 1, 2, 0, 1, 2])
+    torch.manual_seed(5)
+    outside = policy.act(obs, agents, update=0)
+    with policy.collecting():
+        torch.manual_seed(5)
+        inside = policy.act(obs, agents, update=0)
+        values_before = policy.value(obs, agents, update=0)
+    for a, b in zip(outside, inside, strict=True):
+        assert torch.equal(a, b)
+    with torch.no_grad():  # what an update does between two regions
+        for p in policy.nets[0].parameters():
+            p.mul_(1.5)
+    with policy.collecting():
+        values_after = policy.value(obs, agents, update=0)
+    assert torch.equal(values_after, policy.value(obs, agents, update=0))
+    assert not torch.equal(values_after, values_before)
