@@ -175,17 +175,17 @@ class MultiAgentPolicy:
         self.acting[k].load_state_dict(self.nets[k].state_dict())
 
     def _groups(self, agents: torch.Tensor, update: int,
-                played: bool = False) -> list[tuple[ActorCritic, torch.Tensor | None]]:
+                played: bool = False) -> list[tuple[ActorCritic, torch.Tensor | slice]]:
         """The networks in play for AVs `agents` (M,) (`played`: those they play greedily), each with the rows it
-        acts for (None: all of them, the shared network's case, read without a copy of the observations)."""
+        acts for (all of them as a slice in the shared network's case: read without a copy of the observations)."""
         pick = self.played_net if played else self.acting_net
         if self.shared:
-            return [(pick(0, update), None)]
+            return [(pick(0, update), slice(None))]
         nets: dict[int, tuple[ActorCritic, list[int]]] = {}
         for i in range(self.n_agents):
             net = pick(i, update)
             nets.setdefault(id(net), (net, []))[1].append(i)
-        out: list[tuple[ActorCritic, torch.Tensor | None]] = []
+        out: list[tuple[ActorCritic, torch.Tensor | slice]] = []
         for net, members in nets.values():
             sel = torch.isin(agents, torch.tensor(members))
             if sel.any():
@@ -209,8 +209,7 @@ class MultiAgentPolicy:
         evaluation plays them (validation)."""
         m = len(agents)
         actions, logp, values = torch.zeros(m, dtype=torch.int64), torch.zeros(m), torch.zeros(m)
-        for net, sel in self._groups(agents, update, played=greedy):
-            rows = slice(None) if sel is None else sel
+        for net, rows in self._groups(agents, update, played=greedy):
             logits, v = net(obs[rows].to(self.device), float32=greedy)
             # validate_args=False: the checks of its arguments were a tenth of a small batch's acting.
             dist = torch.distributions.Categorical(
@@ -227,8 +226,7 @@ class MultiAgentPolicy:
     def value(self, obs: torch.Tensor, agents: torch.Tensor, update: int) -> torch.Tensor:
         """Values (M,) of observations (M, F, C, H, W) of the AVs `agents`, in the critic's scale."""
         values = torch.zeros(len(agents))
-        for net, sel in self._groups(agents, update):
-            rows = slice(None) if sel is None else sel
+        for net, rows in self._groups(agents, update):
             values[rows] = net.value(obs[rows].to(self.device)).cpu()
         return values
 

@@ -532,14 +532,14 @@ class _Run:
         torch.set_num_threads(self.threads["act"])
         t0 = time.perf_counter()
         update = self.counters["updates"]
-        starts = [0] * self.tc.workers
-
-        def seed_of(w: int) -> int:  # the k-th episode a worker starts in this update: (update, w + k W)
-            starts[w] += 1
-            return episode_seed(self.tc.seed, update, w + (starts[w] - 1) * self.tc.workers)
-
         with self.policy.collecting():
             if self.segments is not None:
+                starts = [0] * self.tc.workers
+
+                def seed_of(w: int) -> int:  # the k-th episode a worker starts in this update: (update, w + k W)
+                    starts[w] += 1
+                    return episode_seed(self.tc.seed, update, w + (starts[w] - 1) * self.tc.workers)
+
                 got = self.segments.collect(self.policy, self.batch, update, seed_of)
             else:
                 got = collect(self.pool, self.policy, self.batch, self.next_seeds(), update)
