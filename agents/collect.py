@@ -1,8 +1,10 @@
 """One update's data: every worker plays one whole episode, the learner acting for all of them in batches.
 
-Contract: `collect(pool, policy, batch, seeds, update)` resets workers `0 .. len(seeds) - 1` with the given
-episode seeds and steps them until each episode is over, filling `batch` (agents.multiagent.Batch) and
-returning a `Collected` with each finished episode's summary, per-agent returns and reward terms. The
+Contract: `collect(pool, policy, batch, seeds, update, egoistic=False)` resets workers `0 .. len(seeds) - 1` with
+the given episode seeds and steps them until each episode is over, filling `batch` (agents.multiagent.Batch) and
+returning a `Collected` with each finished episode's summary, per-agent returns and reward terms. The batch's
+rewards are the env's, or with `egoistic` each agent's own utility (`training_reward`); the returns reported are
+the env's either way. The
 workers are split into two halves that take turns: while one half's envs step (in their processes), the
 learner acts for the other half, one batched forward over all its live agents. Observations come from the
 pool's shared slots, each live agent's action mask with its worker's result (`StepResult.action_mask`, kept in
@@ -58,7 +60,14 @@ class Collected:
     samples: int = 0  # valid agent-samples
 
 
-def collect(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, seeds: list[int], update: int) -> Collected:
+def training_reward(res: StepResult, egoistic: bool) -> np.ndarray:
+    """The rewards (N,) a step trains on: the env's, or with `egoistic` each agent's own utility, the sum of its
+    weighted reward terms (the SVO reward at phi = 0; `train.egoistic_episodes`)."""
+    return sum(res.reward_terms.values(), np.zeros_like(res.reward)) if egoistic else res.reward
+
+
+def collect(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, seeds: list[int], update: int,
+            egoistic: bool = False) -> Collected:
     out = Collected()
     n_workers, n_agents = len(seeds), batch.valid.shape[2]
     batch.clear()
@@ -88,7 +97,7 @@ def collect(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, seeds: lis
                     running.discard(w)
                     continue
                 if t >= 0:
-                    batch.rewards[t, w] = torch.from_numpy(res.reward)
+                    batch.rewards[t, w] = torch.from_numpy(training_reward(res, egoistic))
                     batch.terminated[t, w] = torch.from_numpy(res.terminated)
                     batch.truncated[t, w] = torch.from_numpy(res.truncated)
                     final += [(t, w, int(i)) for i in np.flatnonzero(res.truncated)]
@@ -169,7 +178,8 @@ class Segments:
         self.runs.clear()
         self.sums.clear()
 
-    def collect(self, policy: MultiAgentPolicy, batch: Batch, update: int, seed_of: Callable[[int], int]) -> Collected:
+    def collect(self, policy: MultiAgentPolicy, batch: Batch, update: int, seed_of: Callable[[int], int],
+                egoistic: bool = False) -> Collected:
         out = Collected()
         pool, (steps, n_workers, n_agents) = self.pool, batch.valid.shape
         batch.clear()
@@ -208,7 +218,7 @@ class Segments:
                         continue
                     t = step[w] - 1
                     if stepped:
-                        batch.rewards[t, w] = torch.from_numpy(res.reward)
+                        batch.rewards[t, w] = torch.from_numpy(training_reward(res, egoistic))
                         batch.terminated[t, w] = torch.from_numpy(res.terminated)
                         batch.truncated[t, w] = torch.from_numpy(res.truncated)
                         at_horizon += [(t, w, int(i)) for i in np.flatnonzero(res.truncated)]

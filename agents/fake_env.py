@@ -1,16 +1,17 @@
 """A tiny stand-in for the cosim merge env with the same spaces and PettingZoo parallel semantics.
 
 Contract: `CueEnv` is a `pettingzoo.ParallelEnv` with agents `av_0..av_{N-1}`, `Box(0, H, (F, C, Hpx, Wpx))`
-observations (read-only views into a buffer that the next step overwrites, like the real env) and
-`Discrete(5)` actions. Each decision every agent sees a cue (left half of channel 0 or right half of
-channel 1 lit) and earns 1 for answering it with lane-left (0) or lane-right (2) respectively, so the
-optimal policy is learnable from the observation. Accelerate (3) "crashes" the agent: reward -1 and
-terminated. Agents still running at `horizon` steps are truncated. Infos carry `reward_terms` and, on
-the last step, `episode`; with `masked` actions, each live agent's infos carry an `action_mask` (int8, 0 for those)
-at reset and every step, as the merge env's do. `fail_once_file` makes the env fail once (across processes) at step
-`fail_at_step`, to test worker restarts: raise `SimulationError`, or with `fail_by_exit` end its process
-(as a SUMO crash does); `fail_always` makes every episode fail there (an input SUMO refuses). `step_sleep`
-[s] makes each step take that long (a slow simulation).
+observations (read-only views into a buffer that the next step overwrites, like the real env) and `Discrete(5)`
+actions. Each decision every agent sees a cue (left half of channel 0 or right half of channel 1 lit) and earns 1
+for answering it with lane-left (0) or lane-right (2) respectively, so the optimal policy is learnable from the
+observation. Accelerate (3) "crashes" the agent: reward -1 and terminated. Agents still running at `horizon` steps
+are truncated. Infos carry `reward_terms` and, on the last step, `episode`; `social` is a reward every agent gets on
+top of its own terms each step, outside `reward_terms` (as the SVO reward's part for the others); with `masked`
+actions, each live agent's infos carry an `action_mask` (int8, 0 for those) at reset and every step, as the merge
+env's do. `fail_once_file` makes the env fail once (across processes) at step `fail_at_step`, to test worker
+restarts: raise `SimulationError`, or with `fail_by_exit` end its process (as a SUMO crash does); `fail_always`
+makes every episode fail there (an input SUMO refuses). `step_sleep` [s] makes each step take that long (a slow
+simulation).
 `make_fake_env(**kw)` is a picklable env factory; `play_episode(env, seed)` plays one episode for
 `WorkerPool.send_call`, with a `keep_alive` beat each step as evaluation's episodes do.
 """
@@ -39,7 +40,8 @@ class CueEnv(ParallelEnv):
     def __init__(self, n_agents: int = 2, obs_shape: tuple[int, int, int, int] = (2, 4, 8, 16),
                  dtype: str = "float32", horizon: int = 8, fail_once_file: str | None = None,
                  fail_at_step: int = 3, fail_by_exit: bool = False, step_sleep: float = 0.0,
-                 render_mode: str | None = None, fail_always: bool = False, masked: tuple[int, ...] = ()) -> None:
+                 render_mode: str | None = None, fail_always: bool = False, masked: tuple[int, ...] = (),
+                 social: float = 0.0) -> None:
         self.possible_agents = [f"av_{i}" for i in range(n_agents)]
         self.agents: list[str] = []
         self.render_mode = render_mode
@@ -50,6 +52,7 @@ class CueEnv(ParallelEnv):
         self.fail_by_exit = fail_by_exit
         self.fail_always = fail_always
         self.step_sleep = step_sleep
+        self.social = social
         self._high = _HIGH[dtype]
         self._obs_space = spaces.Box(0, self._high, shape=tuple(obs_shape), dtype=np.dtype(dtype))
         self._act_space = spaces.Discrete(5)
@@ -112,7 +115,7 @@ class CueEnv(ParallelEnv):
             act = int(actions[a])
             correct = float(act == self._cue[i])
             crash = act == 3
-            rewards[a] = correct - float(crash)
+            rewards[a] = correct - float(crash) + self.social
             self._returns[i] += rewards[a]
             self._crashed |= crash
             terms[a] = crash

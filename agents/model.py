@@ -10,7 +10,8 @@ so the paper preset (10, 4, 64, 512) and the CPU default (5, 4, 32, 128) build f
 and the critic share the encoder, as the paper's network does, unless `shared_encoder=False`
 (`train.shared_encoder`). With `obs_norm=True` (`train.obs_norm`) the input is standardised pixel by pixel first
 (`ObsNorm`: running statistics the learner updates, saved with the weights), as SB3's `VecNormalize` does for
-vector observations; without it, as in the paper, the input is only scaled to [0, 1].
+vector observations; without it, as in the paper, the input is only scaled to [0, 1]. With `feature_norm=True`
+(`train.feature_norm`) the encoder normalises its features (LayerNorm between its FC layer and its ReLU).
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ class VelocityMapEncoder(nn.Module):
     """The feature extractor of Table 1: Conv3D x3 -> FC, `(B, F, C, H, W)` any dtype -> `(B, feature_dim)`.
     Also the features extractor of other libraries' policies (scripts/train_sb3.py)."""
 
-    def __init__(self, obs_shape: tuple[int, ...], feature_dim: int = 512) -> None:
+    def __init__(self, obs_shape: tuple[int, ...], feature_dim: int = 512, layer_norm: bool = False) -> None:
         super().__init__()
         if len(obs_shape) != 4:
             raise ConfigError(f"observation shape must be (frames, channels, height, width), got {obs_shape}")
@@ -74,7 +75,8 @@ class VelocityMapEncoder(nn.Module):
             except RuntimeError as exc:
                 raise ConfigError(f"observation: shape {obs_shape} is too small for the paper's Conv3D stack; raise "
                                   f"observation.height_px / width_px / frames ({exc})") from None
-        self.fc = nn.Sequential(_init(nn.Linear(n_flat, feature_dim), relu_gain), nn.ReLU())
+        norm = [nn.LayerNorm(feature_dim)] if layer_norm else []
+        self.fc = nn.Sequential(_init(nn.Linear(n_flat, feature_dim), relu_gain), *norm, nn.ReLU())
         self.conv.to(memory_format=torch.channels_last_3d)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
@@ -175,11 +177,12 @@ class ObsNorm(nn.Module):
 class ActorCritic(nn.Module):
     """Feature extractor (`VelocityMapEncoder`) under an actor head (logits) and a critic head (value); with
     `shared_encoder=False` the critic has an encoder of its own (`critic_features`); with `obs_norm=True` both
-    read the input standardised by `obs_norm` (an `ObsNorm`, else None)."""
+    read the input standardised by `obs_norm` (an `ObsNorm`, else None); with `feature_norm=True` each encoder
+    normalises its features."""
 
     def __init__(self, obs_shape: tuple[int, ...], n_actions: int = 5, *, feature_dim: int = 512,
                  head_hidden: int = 256, bf16: bool = False, shared_encoder: bool = True,
-                 obs_norm: bool = False) -> None:
+                 obs_norm: bool = False, feature_norm: bool = False) -> None:
         super().__init__()
         # Run the forward pass in bfloat16 (weights and outputs stay float32): about twice as fast on CPUs with
         # AMX / AVX512-BF16 (scripts/bench_train.py); the trainer turns it on there, evaluation never does.
@@ -187,10 +190,11 @@ class ActorCritic(nn.Module):
         self.obs_shape = tuple(int(s) for s in obs_shape)
         self.n_actions = n_actions
         relu_gain = math.sqrt(2.0)
-        self.features = VelocityMapEncoder(self.obs_shape, feature_dim)
+        self.features = VelocityMapEncoder(self.obs_shape, feature_dim, feature_norm)
         # Separate: the critic's regression no longer shapes the actor's features (MAPPO's default; Andrychowicz et
         # al. 2021 found shared ones worse), at twice the encoder's work per sample.
-        self.critic_features = None if shared_encoder else VelocityMapEncoder(self.obs_shape, feature_dim)
+        self.critic_features = None if shared_encoder else VelocityMapEncoder(self.obs_shape, feature_dim,
+                                                                              feature_norm)
         self.obs_norm = ObsNorm(*self.obs_shape[1:]) if obs_norm else None
         self.actor = nn.Sequential(_init(nn.Linear(feature_dim, head_hidden), relu_gain), nn.ReLU(),
                                    _init(nn.Linear(head_hidden, n_actions), 0.01))

@@ -120,11 +120,12 @@ class MultiAgentPolicy:
         self.bf16 = use_bf16(tc.precision, tc.device) and _bf16_sound(obs_shape, n_actions, tc, self.device)
         self.nets = [ActorCritic(obs_shape, n_actions, feature_dim=tc.feature_dim, head_hidden=tc.head_hidden,
                                  bf16=self.bf16, shared_encoder=tc.shared_encoder,
-                                 obs_norm=tc.obs_norm).to(self.device)
+                                 obs_norm=tc.obs_norm, feature_norm=tc.feature_norm).to(self.device)
                      for _ in range(n_nets)]
         self.acting = [] if self.shared else [copy.deepcopy(net).requires_grad_(False) for net in self.nets]
-        self.optimizers = [OPTIMIZERS[tc.optimizer](net.parameters(), tc) for net in self.nets]
-        self.value_norms = [ValueNorm().to(self.device) if tc.value_norm else None for _ in self.nets]
+        self.optimizers: list[torch.optim.Optimizer]
+        self.value_norms: list[ValueNorm | None]
+        self.restart_learning(tc)
         self.ema = tc.policy_ema
         self.averaged = [copy.deepcopy(net).requires_grad_(False) for net in self.nets] if self.ema else []
         self.averaged_counts = [0] * len(self.averaged)  # averages taken into each averaged copy so far
@@ -217,6 +218,12 @@ class MultiAgentPolicy:
             a = dist.probs.argmax(-1) if greedy else dist.sample()
             actions[rows], logp[rows], values[rows] = a.cpu(), dist.log_prob(a).cpu(), v.cpu()
         return actions, logp, values
+
+    def restart_learning(self, tc: TrainConfig) -> None:
+        """A fresh optimizer and value normaliser for every network, as a run started from these networks
+        (`--init-from`) begins with (`train.egoistic_episodes`' switch)."""
+        self.optimizers = [OPTIMIZERS[tc.optimizer](net.parameters(), tc) for net in self.nets]
+        self.value_norms = [ValueNorm().to(self.device) if tc.value_norm else None for _ in self.nets]
 
     def _mask(self, masks: torch.Tensor) -> torch.Tensor | None:
         """The masks the policy applies: the env's with `train.action_mask`, else none."""

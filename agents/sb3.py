@@ -48,9 +48,10 @@ EPISODES_PER_COPY = 1_000_000  # episode seeds set aside for each env copy of a 
 class VelocityMapExtractor(BaseFeaturesExtractor):
     """`agents.model.VelocityMapEncoder` as SB3's features extractor."""
 
-    def __init__(self, observation_space: gymnasium.spaces.Box, features_dim: int = 512) -> None:
+    def __init__(self, observation_space: gymnasium.spaces.Box, features_dim: int = 512,
+                 layer_norm: bool = False) -> None:
         super().__init__(observation_space, features_dim)
-        self.encoder = VelocityMapEncoder(observation_space.shape, features_dim)
+        self.encoder = VelocityMapEncoder(observation_space.shape, features_dim, layer_norm)
         # SB3 hands over float copies of the env's uint8 maps: scale them as the encoder scales uint8.
         self.scale = 255.0 if observation_space.dtype == np.uint8 else 1.0
 
@@ -78,7 +79,8 @@ def ppo_kwargs(tc: TrainConfig, n_steps: int, batch: int) -> dict[str, Any]:
             "ent_coef": tc.entropy_coef, "vf_coef": tc.value_coef, "max_grad_norm": tc.max_grad_norm,
             "normalize_advantage": tc.normalize_advantage,
             "policy_kwargs": {"features_extractor_class": VelocityMapExtractor,
-                              "features_extractor_kwargs": {"features_dim": tc.feature_dim},
+                              "features_extractor_kwargs": {"features_dim": tc.feature_dim,
+                                                            "layer_norm": tc.feature_norm},
                               "net_arch": [tc.head_hidden], "normalize_images": False,
                               "share_features_extractor": tc.shared_encoder}}
 

@@ -90,7 +90,7 @@ log = logging.getLogger(__name__)
 
 TORCH_THREADS = torch.get_num_threads()  # torch's default, before any run of this process set its own
 # validated: the episodes trained when the last validation ran (train.eval_every)
-COUNTERS = ("episodes", "updates", "samples", "restarts", "lost_episodes", "validated")
+COUNTERS = ("episodes", "updates", "samples", "restarts", "lost_episodes", "validated", "egoistic_until")
 # The env's summary keys an episodes.csv row carries: of an episode, and of a run under demand.
 EPISODE_KEYS = ("crashed", "merged", "mean_distance", "merger_distance", "length", "cause_av", "cause_hv_into_av",
                 "cause_merger", "merger_alt")
@@ -437,7 +437,8 @@ class _Run:
             self.spec = {"agents": list(spec.agents), "obs_shape": list(spec.obs_shape), "obs_dtype": spec.obs_dtype,
                          "n_actions": spec.n_actions, "shared_policy": tc.shared_policy,
                          "feature_dim": tc.feature_dim, "head_hidden": tc.head_hidden,
-                         "shared_encoder": tc.shared_encoder, "obs_norm": tc.obs_norm}
+                         "shared_encoder": tc.shared_encoder, "obs_norm": tc.obs_norm,
+                         "feature_norm": tc.feature_norm}
             self.policy = MultiAgentPolicy(len(spec.agents), spec.obs_shape, spec.n_actions, tc, tc.device)
             # Which one `auto` chose decides whether the run is reproducible bit for bit (README).
             log.info("forward passes in %s (train.precision: %s)",
@@ -452,6 +453,16 @@ class _Run:
                          self.counters["episodes"])
             # Storage for one update, allocated once: T steps x W workers x N agents (under demand: AV slots).
             self.demand = cfg.demand.enabled
+            # train.egoistic_episodes' curriculum: the episodes trained on each AV's own utility (none where every
+            # angle is 0, whose reward that is already). A run that starts from a trained policy skips it (the
+            # counter's -1 keeps that over resumes): it learnt to drive already.
+            self.warmup = tc.egoistic_episodes if any(cfg.phis()) else 0
+            if self.warmup and start is not None:
+                self.counters["egoistic_until"] = -1
+                log.info("train.egoistic_episodes: no egoistic warm-up for a run that starts from a trained policy")
+            elif self.counters["episodes"] < self.warmup and not self.counters["egoistic_until"]:
+                log.info("egoistic warm-up: episodes %d-%d train on each AV's own utility (phi = 0), the rest on "
+                         "reward.phi's reward (train.egoistic_episodes)", self.counters["episodes"] + 1, self.warmup)
             self.segments = Segments(self.pool, self.demand) if self.demand or tc.segments else None
             self.batch = Batch.allocate(tc.segment_steps if self.segments else spec.max_steps, tc.workers,
                                         len(spec.agents), spec.obs_shape, getattr(torch, spec.obs_dtype),
@@ -491,7 +502,7 @@ class _Run:
         try:
             check_spec({"spec": meta["spec"]}, {k: self.spec[k] for k in ("obs_shape", "n_actions", "feature_dim",
                                                                           "head_hidden", "shared_encoder",
-                                                                          "obs_norm")},
+                                                                          "obs_norm", "feature_norm")},
                        Path(path))
         except CheckpointError as exc:
             raise _from_config(exc) if meta.get("configured") else exc from None
@@ -532,6 +543,9 @@ class _Run:
         torch.set_num_threads(self.threads["act"])
         t0 = time.perf_counter()
         update = self.counters["updates"]
+        egoistic = self.counters["episodes"] < self.warmup and not self.counters["egoistic_until"]
+        if not egoistic and self.warmup and not self.counters["egoistic_until"]:
+            self.end_warmup()
         with self.policy.collecting():
             if self.segments is not None:
                 starts = [0] * self.tc.workers
@@ -540,12 +554,20 @@ class _Run:
                     starts[w] += 1
                     return episode_seed(self.tc.seed, update, w + (starts[w] - 1) * self.tc.workers)
 
-                got = self.segments.collect(self.policy, self.batch, update, seed_of)
+                got = self.segments.collect(self.policy, self.batch, update, seed_of, egoistic)
             else:
-                got = collect(self.pool, self.policy, self.batch, self.next_seeds(), update)
+                got = collect(self.pool, self.policy, self.batch, self.next_seeds(), update, egoistic)
         self.timing["rollout"] += time.perf_counter() - t0
         self._rollout_s = time.perf_counter() - t0
         return got
+
+    def end_warmup(self) -> None:
+        """`train.egoistic_episodes` are done: from this update on the AVs train on reward.phi's reward, with a fresh
+        optimizer and value normaliser (the returns' scale changes), as a run started from this policy would."""
+        self.policy.restart_learning(self.tc)
+        self.counters["egoistic_until"] = self.counters["episodes"]
+        log.info("egoistic warm-up over at episode %d: training on reward.phi's reward from here, with a fresh "
+                 "optimizer and value normaliser", self.counters["episodes"])
 
     def learn(self) -> dict[str, float]:
         torch.set_num_threads(self.threads["update"])

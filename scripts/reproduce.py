@@ -41,7 +41,7 @@ ANGLES = {"phi0": "0", "pi8": "0.3927", "pi4": "0.7854", "3pi8": "1.1781", "pi2"
 _BESIDE = Path(sys.executable).with_name("cosim")
 COSIM = str(_BESIDE) if _BESIDE.is_file() else "cosim"
 SEEDS = (15, 16, 17)  # seeds no earlier run used, fixed before the first of these trained
-OBS_NORM_SEEDS = (50, 51, 52)  # likewise, for today's default (the input standardised)
+OBS_NORM_SEEDS = (50, 51, 52)  # likewise, for the default with the input standardised
 
 
 @dataclass(frozen=True)
@@ -76,28 +76,31 @@ class Recipe:
                 *(a.format(out=out) for a in self.args)]
 
 
-# The committed runs trained before configs/default.yaml turned train.obs_norm on.
+# The committed runs trained before configs/default.yaml turned train.obs_norm on, and all of them before it turned
+# the egoistic warm-up on.
 BEFORE_OBS_NORM = "train.obs_norm=false"
+BEFORE_WARMUP = "train.egoistic_episodes=0"
 
 
 def _default(angle: str, seed: int) -> Run:
     """The default config as it was (the headway cost on, the input not standardised) at one angle and seed, 4,008
     episodes."""
-    return Run(f"hw1_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}", BEFORE_OBS_NORM), 4008)
+    return Run(f"hw1_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}", BEFORE_OBS_NORM,
+                                        BEFORE_WARMUP), 4008)
 
 
 def _current(angle: str, seed: int) -> Run:
-    """Today's configs/default.yaml (the headway cost on, the input standardised) at one angle and seed, 4,008
-    episodes."""
-    return Run(f"on_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}"), 4008)
+    """configs/default.yaml before the egoistic warm-up (the headway cost on, the input standardised) at one angle and
+    seed, 4,008 episodes."""
+    return Run(f"on_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}", BEFORE_WARMUP), 4008)
 
 
 def _mixed(angle: str, seed: int, episodes: int = 4008) -> Run:
     """The default run of the same angle and seed fine-tuned on both merging drivers; at the full budget named as
     its committed snapshots are (`mixfull_*`: the committed `mix30k_*` are the 15,000-episode ones)."""
     name = {4008: "mix", 30000: "mixfull"}.get(episodes, f"mix{episodes // 1000}k")
-    return Run(f"{name}_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}", BEFORE_OBS_NORM),
-               episodes, "configs/mixed_merger.yaml", _default(angle, seed))
+    return Run(f"{name}_{angle}_s{seed}", (f"reward.phi={ANGLES[angle]}", f"train.seed={seed}", BEFORE_OBS_NORM,
+                                           BEFORE_WARMUP), episodes, "configs/mixed_merger.yaml", _default(angle, seed))
 
 
 HELDOUT = ("--shield", "--out", "{out}")
@@ -115,8 +118,9 @@ def _mixed_longer(episodes: int, what: str) -> Recipe:
 
 RECIPES = {
     "heldout_obs_norm": Recipe(
-        "the paper's claims with today's default, three training seeds per angle, polite and impatient merging "
-        "vehicle, with and without the shield", "results/heldout_obs_norm/heldout.md",
+        "the paper's claims with the default before the egoistic warm-up (the input standardised), three training "
+        "seeds per angle, polite and impatient merging vehicle, with and without the shield",
+        "results/heldout_obs_norm/heldout.md",
         tuple(_current(a, s) for a in ("phi0", "pi4") for s in OBS_NORM_SEEDS), "heldout.py", HELDOUT),
     "heldout_headway": Recipe(
         "the same before the input was standardised (train.obs_norm off)", "results/heldout_headway/heldout.md",

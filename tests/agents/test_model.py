@@ -68,6 +68,21 @@ def test_gradient_reaches_every_parameter() -> None:
 
 
 @pytest.mark.parametrize("shared", [True, False])
+def test_feature_norm_standardises_each_samples_features_in_every_encoder(shared: bool) -> None:
+    torch.manual_seed(0)
+    net = ActorCritic((2, 4, 8, 16), feature_dim=32, head_hidden=16, shared_encoder=shared, feature_norm=True)
+    encoders = [net.features] if shared else [net.features, net.critic_features]
+    x = torch.rand(6, 2, 4, 8, 16) * torch.arange(1, 7).view(6, 1, 1, 1, 1)  # samples of different scales
+    for encoder in encoders:
+        linear = encoder.fc[0](encoder.conv(prepare(x)))
+        expected = torch.relu((linear - linear.mean(-1, keepdim=True))
+                              / (linear.var(-1, correction=0, keepdim=True) + 1e-5).sqrt())
+        torch.testing.assert_close(encoder(x), expected, atol=1e-5, rtol=1e-4)
+    plain = ActorCritic((2, 4, 8, 16), feature_dim=32, head_hidden=16, shared_encoder=shared)
+    assert not any(isinstance(m, torch.nn.LayerNorm) for m in plain.modules())
+
+
+@pytest.mark.parametrize("shared", [True, False])
 def test_the_critics_loss_shapes_the_actors_features_only_through_a_shared_encoder(shared: bool) -> None:
     torch.manual_seed(0)
     net = ActorCritic((2, 4, 8, 16), feature_dim=32, head_hidden=16, shared_encoder=shared)

@@ -92,3 +92,17 @@ def test_cosims_own_input_standardisation_is_left_out_of_sb3_by_name_not_silentl
     caplog.clear()
     sb3_train_config(train_config(load_config(None)))
     assert "obs_norm" not in caplog.text
+
+
+@pytest.mark.parametrize("feature_norm", [False, True])
+def test_sb3s_features_extractor_normalises_its_features_as_the_config_says(feature_norm: bool) -> None:
+    import gymnasium
+
+    from agents.config import train_config
+    from agents.sb3 import ppo_kwargs
+
+    tc = train_config({"feature_norm": feature_norm})
+    policy = ppo_kwargs(tc, n_steps=20, batch=80)["policy_kwargs"]
+    space = gymnasium.spaces.Box(0, 255, (2, 4, 8, 16), np.uint8)
+    extractor = policy["features_extractor_class"](space, **policy["features_extractor_kwargs"])
+    assert any(isinstance(m, torch.nn.LayerNorm) for m in extractor.modules()) is feature_norm

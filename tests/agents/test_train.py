@@ -406,6 +406,71 @@ def test_obs_norm_learns_the_inputs_statistics_keeps_them_exact_in_float16_files
     check_spec({"spec": {"feature_dim": 32}}, {"feature_dim": 32, "obs_norm": False}, tmp_path / "old.pt")
 
 
+def test_feature_norm_travels_with_the_policy_file_and_must_match(tmp_path: Path) -> None:
+    from agents.checkpoint import check_spec, export_policy
+
+    run = train(cfg_with(feature_norm=True), tmp_path / "ln", workers=1, episodes=1,
+                env_factory=make_fake_env(n_agents=2), progress=False)
+    export_policy(run.checkpoint, tmp_path / "ln.pt")
+    policies, meta = load_policy(tmp_path / "ln.pt")
+    net = policies["av_0"]
+    assert meta["spec"]["feature_norm"] is True
+    assert any(isinstance(m, torch.nn.LayerNorm) for m in net.features.modules())
+    trained = read_checkpoint(run.checkpoint)["policy"]["nets"][0]
+    gains = [k for k in trained if k.startswith("features.fc.1.")]
+    assert gains and all(torch.equal(net.state_dict()[k].float(), trained[k].float().half().float()) for k in gains)
+    with pytest.raises(CheckpointError, match=r"incompatible feature_norm: checkpoint has True, this run needs False "
+                                              r"\(it trained with train.feature_norm=true\)"):
+        train(cfg_with(), tmp_path / "plain", workers=1, episodes=1, progress=False,
+              env_factory=make_fake_env(n_agents=2), init_from=run.checkpoint)
+    # Checkpoints from before the key trained without it: read as off.
+    check_spec({"spec": {"feature_dim": 32}}, {"feature_dim": 32, "feature_norm": False}, tmp_path / "old.pt")
+
+
+def _learning_state(checkpoint: Path) -> tuple[int, float, int]:
+    """Adam's steps so far, the value normaliser's debiasing weight and the warm-up's end (counters)."""
+    payload = read_checkpoint(checkpoint)
+    policy = payload["policy"]
+    steps = int(next(iter(policy["optimizers"][0]["state"].values()))["step"])
+    return steps, float(policy["value_norms"][0]["debias"]), int(payload["counters"].get("egoistic_until", 0))
+
+
+def test_the_egoistic_warm_up_ends_once_with_a_fresh_optimizer_and_value_normaliser(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level("INFO", logger="agents.train")
+    per_update = 1  # SMALL trains with A2C, the built-in default: one step per update, of one episode each
+    altruistic = load_config({"train": {**SMALL, "egoistic_episodes": 2}, "reward": {"phi": 0.7854}})
+    env = make_fake_env(n_agents=2, social=100.0)  # the env's reward: each AV's terms + 100 for the others
+    run = train(altruistic, tmp_path / "warm", workers=1, episodes=3, env_factory=env, progress=False)
+    # Updates 1 and 2 trained on the AVs' own utility (returns of at most 1 / (1 - gamma) = 2), the third on the
+    # env's reward, starting afresh.
+    with (tmp_path / "warm" / "updates.csv").open() as f:
+        returns = [float(row["return"]) for row in csv.DictReader(f)]
+    assert max(returns[:2]) <= 2 and returns[2] > 50
+    assert _learning_state(run.checkpoint) == (per_update, pytest.approx(1 - 0.995), 2)
+    assert caplog.text.count("egoistic warm-up over at episode 2") == 1
+    run = train(altruistic, tmp_path / "warm", workers=1, episodes=4, env_factory=env, progress=False, resume=True)
+    assert _learning_state(run.checkpoint) == (2 * per_update, pytest.approx(1 - 0.995 ** 2), 2)  # not again
+    assert caplog.text.count("egoistic warm-up over") == 1
+    # A run that starts from a trained policy has learnt to drive: no warm-up, over a resume too.
+    tuned = train(altruistic, tmp_path / "tuned", workers=1, episodes=1, env_factory=env, progress=False,
+                  init_from=run.checkpoint)
+    tuned = train(altruistic, tmp_path / "tuned", workers=1, episodes=3, env_factory=env, progress=False,
+                  resume=True)
+    assert _learning_state(tuned.checkpoint) == (3 * per_update, pytest.approx(1 - 0.995 ** 3), -1)
+    assert caplog.text.count("egoistic warm-up over") == 1
+    # Where every angle is 0 the reward is the egoistic one already: nothing to switch.
+    egoistic = load_config({"train": {**SMALL, "egoistic_episodes": 2}, "reward": {"phi": 0.0}})
+    run = train(egoistic, tmp_path / "ego", workers=1, episodes=3, env_factory=make_fake_env(n_agents=2),
+                progress=False)
+    assert _learning_state(run.checkpoint) == (3 * per_update, pytest.approx(1 - 0.995 ** 3), 0)
+
+
+def test_the_egoistic_warm_up_is_refused_under_demand() -> None:
+    with pytest.raises(ConfigError, match=r"train.egoistic_episodes=504: .*not under demand"):
+        load_config("configs/demand.yaml", overrides=["train.egoistic_episodes=504"])
+
+
 def test_a_resumed_fine_tune_still_names_the_policy_it_started_from(tmp_path: Path,
                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     # The resume rewrote net.json from its own command line, which has no --init-from: the fine-tune's origin was lost.
