@@ -89,9 +89,11 @@ def test_cosims_own_input_standardisation_is_left_out_of_sb3_by_name_not_silentl
     sb3 = sb3_train_config(tc)
     assert not sb3.obs_norm and sb3.lr == tc.lr and tc.obs_norm
     assert "train.obs_norm: cosim train's input standardisation has no counterpart in SB3's PPO" in caplog.text
+    assert tc.egoistic_episodes and not sb3.egoistic_episodes  # the default config's warm-up, left out by name too
+    assert "train.egoistic_episodes: cosim train's egoistic warm-up has no counterpart in SB3's PPO" in caplog.text
     caplog.clear()
     sb3_train_config(train_config(load_config(None)))
-    assert "obs_norm" not in caplog.text
+    assert "obs_norm" not in caplog.text and "egoistic" not in caplog.text
 
 
 @pytest.mark.parametrize("feature_norm", [False, True])
