@@ -454,10 +454,13 @@ class _Run:
             # Storage for one update, allocated once: T steps x W workers x N agents (under demand: AV slots).
             self.demand = cfg.demand.enabled
             # train.egoistic_episodes' curriculum: the episodes trained on each AV's own utility (none where every
-            # angle is 0, whose reward that is already). A run that starts from a trained policy skips it (the
-            # counter's -1 keeps that over resumes): it learnt to drive already.
+            # angle is 0, whose reward that is already, nor under demand, where it was not measured). A run that
+            # starts from a trained policy skips it (the counter's -1 keeps that over resumes): it learnt to drive.
             self.warmup = tc.egoistic_episodes if any(cfg.phis()) else 0
-            if self.warmup and start is not None:
+            if self.warmup and self.demand:
+                self.warmup = 0
+                log.info("train.egoistic_episodes: no egoistic warm-up under demand (measured on episodes only)")
+            elif self.warmup and start is not None:
                 self.counters["egoistic_until"] = -1
                 log.info("train.egoistic_episodes: no egoistic warm-up for a run that starts from a trained policy")
             elif self.counters["episodes"] < self.warmup and not self.counters["egoistic_until"]:

@@ -621,8 +621,9 @@ class TrainConfig(_Section):
     egoistic_episodes: Int = Field(
         0, ge=0, description="a curriculum: the first this many episodes train every AV on its own utility (the SVO "
         "reward at phi = 0), the rest on reward.phi's, with a fresh optimizer and value normaliser from the switch on, "
-        "as a second run started from the first's policy (--init-from) would; inert where every AV's angle is 0 and "
-        "in a run that starts from a trained policy; not under demand; 0: reward.phi's throughout [episodes]")
+        "as a second run started from the first's policy (--init-from) would; inert where every AV's angle is 0, in a "
+        "run that starts from a trained policy and under demand (measured on episodes only); 0: reward.phi's "
+        "throughout [episodes]")
     feature_norm: StrictBool = Field(
         False, description="layer normalisation (Ba et al. 2016) of the encoder's features, between its FC layer and "
         "its ReLU, with a learned gain and bias per feature; false: none, as in the paper's network")
@@ -714,13 +715,6 @@ class Config(_Section):
         phi = self.reward.phi
         if isinstance(phi, tuple) and len(phi) != self.scenario.n_avs:
             raise _problem(f"a list needs one angle per AV ({self.scenario.n_avs}), got {len(phi)}", "reward.phi")
-        return self
-
-    @model_validator(mode="after")
-    def _egoistic_first_on_episodes(self) -> Self:
-        if self.demand.enabled and self.train.egoistic_episodes:
-            raise _problem("the egoistic warm-up is measured on episodes, not under demand: set it to 0 with "
-                           "demand.enabled", "train.egoistic_episodes")
         return self
 
     @property

@@ -141,11 +141,13 @@ def test_training_under_demand_starts_from_the_shipped_episode_policy_by_default
                                                                                    caplog: pytest.LogCaptureFixture
                                                                                    ) -> None:
     default = {k: v for k, v in SHORT.items() if k not in ("train.feature_dim", "train.head_hidden", "train.init_from")}
-    cfg = load_config("configs/demand.yaml", default)
+    cfg = load_config("configs/demand.yaml", {**default, "reward.phi": 0.7854})
+    assert cfg.train.egoistic_episodes  # configs/default.yaml's warm-up, which was measured on episodes only
     assert cfg.train.init_from == str(Path("policies/egoistic/best.pt").resolve())  # relative to the YAML file
     with caplog.at_level("INFO", logger="agents.train"):
         train(cfg, tmp_path / "run", episodes=1, workers=1, progress=False)
     assert "starting from the networks of " + cfg.train.init_from in caplog.text
+    assert "no egoistic warm-up under demand" in caplog.text and "egoistic warm-up over" not in caplog.text
     assert json.loads((tmp_path / "run" / "net.json").read_text())["init_from"] == cfg.train.init_from
     # A network the shipped policy does not fit is one line naming the key and the way out; nothing is left behind.
     with pytest.raises(CheckpointError, match=r"train\.init_from: .*incompatible feature_dim.*train\.init_from=null"):

@@ -466,11 +466,6 @@ def test_the_egoistic_warm_up_ends_once_with_a_fresh_optimizer_and_value_normali
     assert _learning_state(run.checkpoint) == (3 * per_update, pytest.approx(1 - 0.995 ** 3), 0)
 
 
-def test_the_egoistic_warm_up_is_refused_under_demand() -> None:
-    with pytest.raises(ConfigError, match=r"train.egoistic_episodes=504: .*not under demand"):
-        load_config("configs/demand.yaml", overrides=["train.egoistic_episodes=504"])
-
-
 def test_a_resumed_fine_tune_still_names_the_policy_it_started_from(tmp_path: Path,
                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     # The resume rewrote net.json from its own command line, which has no --init-from: the fine-tune's origin was lost.

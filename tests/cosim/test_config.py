@@ -176,7 +176,8 @@ def test_train_and_evaluate_are_typed_sections() -> None:
     assert cfg.to_dict()["evaluate"] == {"episodes": 7}
     assert set(cfg.to_dict()["train"]) == {"workers", "episodes", "checkpoint_every", "disseminate_every", "algo",
                                            "ppo_epochs", "ppo_minibatches", "gamma", "gae_lambda", "lr",
-                                           "entropy_coef", "eval_every", "eval_episodes", "obs_norm"}
+                                           "entropy_coef", "eval_every", "eval_episodes", "obs_norm",
+                                           "egoistic_episodes"}
     assert load_config(cfg) == cfg
 
 

@@ -117,10 +117,10 @@ def test_a_second_ctrl_c_while_learning_checkpoints_the_last_complete_update_exa
 
     real_collect, real_update, before = agents.train.collect, MultiAgentPolicy.update, {}
 
-    def collect(pool: Any, policy: MultiAgentPolicy, batch: Any, seeds: list[int], k: int) -> Any:
+    def collect(pool: Any, policy: MultiAgentPolicy, batch: Any, seeds: list[int], k: int, egoistic: bool) -> Any:
         if k == 1:  # the second update, before the first checkpoint (every 4), as it begins
             before.update(policy=copy.deepcopy(policy.state_dict()), rng=rng_state())
-        return real_collect(pool, policy, batch, seeds, k)
+        return real_collect(pool, policy, batch, seeds, k, egoistic)
 
     def update(self: MultiAgentPolicy, batch: Any, tc: Any, k: int, progress: float) -> dict[str, float]:
         stats = real_update(self, batch, tc, k, progress)
