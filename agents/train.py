@@ -546,8 +546,9 @@ class _Run:
         torch.set_num_threads(self.threads["act"])
         t0 = time.perf_counter()
         update = self.counters["updates"]
-        egoistic = self.counters["episodes"] < self.warmup and not self.counters["egoistic_until"]
-        if not egoistic and self.warmup and not self.counters["egoistic_until"]:
+        warming = bool(self.warmup) and not self.counters["egoistic_until"]  # the warm-up neither over nor skipped
+        egoistic = warming and self.counters["episodes"] < self.warmup
+        if warming and not egoistic:
             self.end_warmup()
         with self.policy.collecting():
             if self.segments is not None:
