@@ -42,6 +42,7 @@ _BESIDE = Path(sys.executable).with_name("cosim")
 COSIM = str(_BESIDE) if _BESIDE.is_file() else "cosim"
 SEEDS = (15, 16, 17)  # seeds no earlier run used, fixed before the first of these trained
 OBS_NORM_SEEDS = (50, 51, 52)  # likewise, for the default with the input standardised
+WARMUP_SEEDS = (80, 81, 82, 83, 84, 85)  # likewise, the measurement seeds of the egoistic warm-up
 
 
 @dataclass(frozen=True)
@@ -76,8 +77,8 @@ class Recipe:
                 *(a.format(out=out) for a in self.args)]
 
 
-# The committed runs trained before configs/default.yaml turned train.obs_norm on, and all of them before it turned
-# the egoistic warm-up on.
+# The committed runs but heldout_obs_norm's and heldout_warmup's trained before configs/default.yaml turned
+# train.obs_norm on, and all of them but heldout_warmup's before it turned the egoistic warm-up on.
 BEFORE_OBS_NORM = "train.obs_norm=false"
 BEFORE_WARMUP = "train.egoistic_episodes=0"
 
@@ -103,6 +104,12 @@ def _mixed(angle: str, seed: int, episodes: int = 4008) -> Run:
                                            BEFORE_WARMUP), episodes, "configs/mixed_merger.yaml", _default(angle, seed))
 
 
+def _warmup(seed: int) -> Run:
+    """configs/default.yaml as it is (the egoistic warm-up on) at pi/4 and one seed, 2,004 episodes: the halving mark
+    of docs/results.md's "Episodes to a safe policy"."""
+    return Run(f"ego504_pi4_s{seed}", (f"reward.phi={ANGLES['pi4']}", f"train.seed={seed}"), 2004)
+
+
 HELDOUT = ("--shield", "--out", "{out}")
 SHIPPED_MIXED = (_mixed("phi0", SEEDS[0], 30000), _mixed("pi4", SEEDS[0], 30000))
 
@@ -122,6 +129,11 @@ RECIPES = {
         "seeds per angle, polite and impatient merging vehicle, with and without the shield",
         "results/heldout_obs_norm/heldout.md",
         tuple(_current(a, s) for a in ("phi0", "pi4") for s in OBS_NORM_SEEDS), "heldout.py", HELDOUT),
+    "heldout_warmup": Recipe(
+        "the default with the egoistic warm-up at pi/4 after 2,004 episodes, six training seeds, polite merging "
+        "vehicle",
+        "results/heldout_warmup/heldout.md", tuple(_warmup(s) for s in WARMUP_SEEDS), "heldout.py",
+        ("--impatient-episodes", "0", "--out", "{out}")),
     "heldout_headway": Recipe(
         "the same before the input was standardised (train.obs_norm off)", "results/heldout_headway/heldout.md",
         tuple(_default(a, s) for a in ("phi0", "pi4") for s in SEEDS), "heldout.py", HELDOUT),
