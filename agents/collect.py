@@ -8,7 +8,8 @@ the env's either way. The
 workers are split into two halves that take turns: while one half's envs step (in their processes), the
 learner acts for the other half, one batched forward over all its live agents. Observations come from the
 pool's shared slots, each live agent's action mask with its worker's result (`StepResult.action_mask`, kept in
-`Batch.masks` for the update); the values of truncated agents' final observations are computed as they arrive.
+`Batch.masks` for the update); the values of truncated agents' final observations are computed in one forward
+when the collection ends (`Bootstraps`).
 A worker that fails is replaced by the pool; its fresh replacement plays the episode again (the same seed and
 actions: SUMO is deterministic) up to the command that failed. A failure that comes back there is no bad luck
 but the episode's own (SUMO refusing an input, say): training stops at once with `EpisodeError` naming it,
@@ -77,6 +78,7 @@ def collect(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, seeds: lis
     returns = np.zeros((n_workers, n_agents))
     terms: list[dict[str, np.ndarray]] = [defaultdict(lambda: np.zeros(n_agents)) for _ in range(n_workers)]
     running = set(range(n_workers))
+    cut = Bootstraps()
     for g in groups:
         pool.send_reset(g, [seeds[w] for w in g])
     while running:
@@ -111,12 +113,10 @@ def collect(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, seeds: lis
                     raise RuntimeError(f"an episode ran past {batch.valid.shape[0]} steps, the env's max_steps")
                 else:
                     live.append((w, res))
-            if final:
-                t_, w_, i_ = (torch.tensor(x) for x in zip(*final, strict=True))
-                obs = torch.from_numpy(pool.final[w_.numpy(), i_.numpy()])
-                batch.final_values[t_, w_, i_] = policy.value(obs, i_, update)
+            cut.add(pool.final, final)
             if live:
                 _act(pool, policy, batch, live, step, update)
+    cut.value(policy, batch, update)
     out.samples = int(batch.valid.sum())
     return out
 
@@ -155,7 +155,9 @@ def _act(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, live: list[tu
         agents += idx.tolist()
         times += [t] * len(idx)
     w_, i_, t_ = torch.tensor(rows), torch.tensor(agents), torch.tensor(times)
-    actions, logp, values = policy.act(batch.obs[t_, w_, i_], i_, update, batch.masks[t_, w_, i_])
+    n_workers, n_agents = batch.valid.shape[1:]
+    obs = batch.observations((t_ * n_workers + w_) * n_agents + i_)
+    actions, logp, values = policy.act(obs, i_, update, batch.masks[t_, w_, i_])
     batch.actions[t_, w_, i_], batch.logp[t_, w_, i_], batch.values[t_, w_, i_] = actions, logp, values
     full = np.ones((len(ws), batch.valid.shape[2]), dtype=np.int64)  # idle for agents that are gone
     pos = {w: k for k, w in enumerate(ws)}
@@ -200,6 +202,7 @@ class Segments:
 
         start([w for w in range(n_workers) if w not in ready])
         running = set(range(n_workers))
+        cut = Bootstraps()
         while running:
             for g in groups:
                 waiting = [w for w in g if w in running and w not in ready]
@@ -242,12 +245,13 @@ class Segments:
                         running.discard(w)
                     else:
                         live.append((w, res))
-                _bootstrap(policy, batch, pool.final, at_horizon, update)
-                _bootstrap(policy, batch, pool.obs, going_on, update)
+                cut.add(pool.final, at_horizon)
+                cut.add(pool.obs, going_on)
                 if restart:
                     start(restart)
                 if live:
                     _act(pool, policy, batch, live, step, update)
+        cut.value(policy, batch, update)
         out.samples = int(batch.valid.sum())
         return out
 
@@ -257,13 +261,27 @@ def per_av_released(total: float, run: dict[str, Any]) -> float:
     return total / max(int(run["avs_released"]), 1)
 
 
-def _bootstrap(policy: MultiAgentPolicy, batch: Batch, source: Any, cut: list[tuple[int, int, int]],
-               update: int) -> None:
-    """Agents (t, w, i) whose trajectory is cut after decision t: truncated there, with the value of the observation
-    they go on from (`source[w, i]`: the pool's final observations, or its current ones) to bootstrap."""
-    if not cut:
-        return
-    t_, w_, i_ = (torch.tensor(x) for x in zip(*cut, strict=True))
-    batch.truncated[t_, w_, i_] = True
-    obs = torch.from_numpy(source[w_.numpy(), i_.numpy()])
-    batch.final_values[t_, w_, i_] = policy.value(obs, i_, update)
+class Bootstraps:
+    """Samples (t, w, i) whose trajectory is cut after decision t (truncated), with a copy of the observation each goes
+    on from, to bootstrap from its value: all valued in one forward when the collection ends (`value`)."""
+
+    def __init__(self) -> None:
+        self.cut: list[tuple[int, int, int]] = []
+        self.obs: list[np.ndarray] = []
+
+    def add(self, source: Any, cut: list[tuple[int, int, int]]) -> None:
+        """Samples `cut`, going on from `source[w, i]` (the pool's final observations, or its current ones), copied
+        now: the pool writes the next ones into the same slots."""
+        if cut:
+            self.cut += cut
+            _, w_, i_ = (np.array(x) for x in zip(*cut, strict=True))
+            self.obs.append(source[w_, i_])
+
+    def value(self, policy: MultiAgentPolicy, batch: Batch, update: int) -> None:
+        # One forward, not one per round for the few agents cut in it: those were a tenth of the learner's time while
+        # collecting (py-spy, A2C, 2 cores of an AMD EPYC), the network's per-call cost paid for a handful of samples.
+        if not self.cut:
+            return
+        t_, w_, i_ = (torch.tensor(x) for x in zip(*self.cut, strict=True))
+        batch.truncated[t_, w_, i_] = True
+        batch.final_values[t_, w_, i_] = policy.value(torch.from_numpy(np.concatenate(self.obs)), i_, update)

@@ -1,7 +1,7 @@
 """How the AVs' networks learn from one batch: the shared network uses every live AV's sample; the paper's
 per-AV scheme trains the learner only, freezes the others and disseminates exactly; masking; bootstrapping;
-the same in bfloat16, within its rounding; minibatches padded to few sizes without a change to the update; the
-weights' moving average that greedy acting plays."""
+the same in bfloat16, within its rounding; minibatches padded to few sizes, and split into chunks, without a
+change to the update; the batch's gather of observations; the weights' moving average that greedy acting plays."""
 
 import dataclasses
 
@@ -356,6 +356,29 @@ def test_padding_a_minibatch_to_its_bucket_leaves_the_update_as_it_was(algo: str
     _, unpadded = trained(tc, copy_batch(b))
     for k, v in unpadded[0].items():
         torch.testing.assert_close(padded[0][k], v, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("algo", ["a2c", "ppo"])
+def test_a_minibatch_split_into_chunks_makes_the_update_and_statistics_of_one_pass(algo: str, monkeypatch) -> None:
+    tc = small_tc(algo=algo, ppo_minibatches=2, ppo_epochs=2, obs_norm=True)
+    b = random_batch(T=11)  # 66 samples: A2C's one pass in 7 chunks of at most 10, PPO's minibatches of 33 in 4
+    monkeypatch.setattr("agents.multiagent.UPDATE_CHUNK", 10)
+    chunked_stats, chunked = trained(tc, copy_batch(b))
+    monkeypatch.setattr("agents.multiagent.UPDATE_CHUNK", 1000)
+    whole_stats, whole = trained(tc, copy_batch(b))
+    for k, v in whole[0].items():
+        torch.testing.assert_close(chunked[0][k], v, rtol=1e-5, atol=1e-6)
+    assert chunked_stats.keys() == whole_stats.keys()
+    for k, v in whole_stats.items():
+        assert chunked_stats[k] == pytest.approx(v, rel=1e-5, abs=1e-6), k
+
+
+def test_observations_gathers_the_samples_of_flat_indices() -> None:
+    b = random_batch(T=4, W=3, N=2)
+    t, w, i = torch.tensor([3, 0, 2, 2]), torch.tensor([1, 2, 0, 0]), torch.tensor([0, 1, 1, 0])
+    got = b.observations((t * 3 + w) * 2 + i)
+    assert torch.equal(got, b.obs[t, w, i])
+    assert got.stride() == b.obs[t, w, i].stride()  # the batch's channels-last layout, which the network reads
 
 
 def test_the_averaged_copy_follows_the_trained_weights_and_is_what_greedy_acting_plays() -> None:
