@@ -312,7 +312,8 @@ class MultiAgentPolicy:
                 a = adv[dev_idx]
                 a = normalize(a) if tc.normalize_advantage else a  # over the minibatch, not the chunk
                 opt.zero_grad(set_to_none=True)
-                size = -(-n // -(-n // UPDATE_CHUNK))
+                chunks = -(-n // UPDATE_CHUNK)
+                size = -(-n // chunks)  # equal chunks, none over UPDATE_CHUNK
                 for start in range(0, n, size):
                     part, at = idx[start:start + size], slice(start, start + size)
                     c = len(part)
