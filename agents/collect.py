@@ -156,8 +156,9 @@ def _act(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, live: list[tu
         times += [t] * len(idx)
     w_, i_, t_ = torch.tensor(rows), torch.tensor(agents), torch.tensor(times)
     n_workers, n_agents = batch.valid.shape[1:]
-    obs = batch.observations((t_ * n_workers + w_) * n_agents + i_)
-    actions, logp, values = policy.act(obs, i_, update, batch.masks[t_, w_, i_])
+    flat = (t_ * n_workers + w_) * n_agents + i_
+    actions, logp, values = policy.act(batch.observations(flat), i_, update, batch.masks[t_, w_, i_],
+                                       slots=w_ * n_agents + i_, continues=batch.continues(flat))
     batch.actions[t_, w_, i_], batch.logp[t_, w_, i_], batch.values[t_, w_, i_] = actions, logp, values
     full = np.ones((len(ws), batch.valid.shape[2]), dtype=np.int64)  # idle for agents that are gone
     pos = {w: k for k, w in enumerate(ws)}

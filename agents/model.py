@@ -12,10 +12,14 @@ and the critic share the encoder, as the paper's network does, unless `shared_en
 (`ObsNorm`: running statistics the learner updates, saved with the weights), as SB3's `VecNormalize` does for
 vector observations; without it, as in the paper, the input is only scaled to [0, 1]. With `feature_norm=True`
 (`train.feature_norm`) the encoder normalises its features (LayerNorm between its FC layer and its ReLU).
+The first layer's depth kernel is 1, so it runs on each frame alone (`frame_features`): `forward_frames` takes
+observations as their distinct frames and where each observation's are, and `FrameMemory` keeps the outputs of
+frames already seen while acting.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -85,6 +89,20 @@ class VelocityMapEncoder(nn.Module):
     def encode(self, x: torch.Tensor) -> torch.Tensor:
         """`prepare`'s output -> (B, feature_dim)."""
         return self.fc(self.conv(x))
+
+    def frame_features(self, x: torch.Tensor) -> torch.Tensor:
+        """`prepare`'s output of single frames (K, C, 1, H, W) -> the first layer's (Conv3D and ReLU) output of each,
+        (K, 1, h1, w1, c1) channels last. Its depth kernel is 1, so a frame's output is the same in any stack: a frame
+        that several observations share (a stack shifts by one frame per decision) is computed once."""
+        return self.conv[1](self.conv[0](x)).permute(0, 2, 3, 4, 1)
+
+    def encode_stacks(self, stacks: torch.Tensor) -> torch.Tensor:
+        """The first layer's outputs of each observation's frames, (B, F, h1, w1, c1) oldest to newest (as
+        `frame_features` gives them, stacked) -> (B, feature_dim), as `encode` of the observations gives."""
+        y = stacks.permute(0, 4, 1, 2, 3)  # (B, c1, F, h1, w1), channels-last in memory where the stacks are contiguous
+        for layer in itertools.islice(self.conv, 2, None):
+            y = layer(y)
+        return self.fc(y)
 
 
 # Bytes of the encoder's input prepared at once on the CPU (`prepare`): a chunk that stays in a core's L2 cache.
@@ -213,17 +231,33 @@ class ActorCritic(nn.Module):
     def forward(self, obs: torch.Tensor, float32: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, F, C, H, W) -> logits (B, A), values (B,), float32; `float32`: without bfloat16 autocast even where
         the network trains with it (validation plays as evaluation does)."""
+        b, f = obs.shape[:2]
         with self._precision(obs, float32):
-            x = prepare(obs, self.obs_norm)
-            h = self.features.encode(x)
-            logits, values = self.actor(h), self.critic(self._critic_features(x, h)).squeeze(-1)
-        return logits.float(), values.float()
+            return self.heads(tuple(x.reshape(b, f, *x.shape[2:]) for x in self.frame_features(obs.flatten(0, 1))))
 
-    def _critic_features(self, x: torch.Tensor, actor_features: torch.Tensor | None = None) -> torch.Tensor:
-        """The critic's features of `prepare`'s output `x`."""
-        if self.critic_features is not None:
-            return self.critic_features.encode(x)
-        return self.features.encode(x) if actor_features is None else actor_features
+    def forward_frames(self, frames: torch.Tensor, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """`forward` of B observations given as their distinct frames (K, C, H, W) and, for each observation, where
+        its frames are in them, oldest to newest (B, F): the first layer runs once per distinct frame."""
+        with self._precision(frames):
+            return self.heads(tuple(x.index_select(0, index.flatten()).view(*index.shape, *x.shape[2:])
+                                    for x in self.frame_features(frames)))
+
+    def frame_features(self, frames: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Frames (K, C, H, W) of any dtype the observations have -> the first layer's output of each (K, 1, h1, w1,
+        c1) in every encoder (the actor's, then the critic's where it has its own; `VelocityMapEncoder.frame_features`),
+        in the dtype of the forward's precision where called in it."""
+        x = prepare(frames.unsqueeze(1), self.obs_norm)
+        return tuple(encoder.frame_features(x) for encoder in self._encoders())
+
+    def heads(self, stacks: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every encoder's first-layer outputs of B observations' frames (B, F, h1, w1, c1) (`frame_features`,
+        stacked) -> logits (B, A), values (B,), float32."""
+        h = self.features.encode_stacks(stacks[0])
+        critic_h = h if self.critic_features is None else self.critic_features.encode_stacks(stacks[1])
+        return self.actor(h).float(), self.critic(critic_h).squeeze(-1).float()
+
+    def _encoders(self) -> tuple[VelocityMapEncoder, ...]:
+        return (self.features,) if self.critic_features is None else (self.features, self.critic_features)
 
     @property
     def shared_encoder(self) -> bool:
@@ -231,8 +265,7 @@ class ActorCritic(nn.Module):
 
     def value(self, obs: torch.Tensor) -> torch.Tensor:
         """(B, F, C, H, W) -> (B,), float32."""
-        with self._precision(obs):
-            return self.critic(self._critic_features(prepare(obs, self.obs_norm))).squeeze(-1).float()
+        return self(obs)[1]
 
     @torch.no_grad()
     def act(self, obs: np.ndarray | torch.Tensor, greedy: bool = False,
@@ -247,6 +280,49 @@ class ActorCritic(nn.Module):
         if greedy:
             return logits.argmax(-1).cpu().numpy()
         return torch.distributions.Categorical(logits=logits).sample().cpu().numpy()
+
+
+class FrameMemory:
+    """For a network whose weights stay as they are (the learner's acting through one collection), the first layer's
+    outputs of each slot's last observation (a slot: one agent of one worker), per encoder: an observation that
+    continues its slot's last one (its stack shifted by a frame: `agents.multiagent.Batch.continues`) runs the first
+    layer on its newest frame only, the other frames' outputs taken from the last one's (`__call__`)."""
+
+    def __init__(self, net: ActorCritic) -> None:
+        self.net = net
+        self.stacks: tuple[torch.Tensor, ...] = ()  # per encoder (slots, F, h1, w1, c1): each slot's last stack
+
+    def __call__(self, obs: torch.Tensor, slots: torch.Tensor, continues: torch.Tensor) -> tuple[torch.Tensor,
+                                                                                                   torch.Tensor]:
+        """`net(obs)` for observations (B, F, C, H, W) of slots (B,), of which those `continues` (B,) flags continue
+        the slot's last one; every slot's stack is then these observations'."""
+        b, f = obs.shape[:2]
+        on, anew = continues.nonzero().squeeze(1), (~continues).nonzero().squeeze(1)
+        ids = torch.cat([on * f + f - 1, (anew[:, None] * f + torch.arange(f, device=obs.device)).flatten()])
+        # Selected channels last, the layout the learner's observations are stored in (agents.multiagent.Batch): one
+        # row copy per frame, where a selection in the (C, H, W) view transposes every frame.
+        frames = obs.flatten(0, 1).permute(0, 2, 3, 1).index_select(0, ids).permute(0, 3, 1, 2)
+        with self.net._precision(obs):
+            features = self.net.frame_features(frames)
+            stacks = []
+            for k, x in enumerate(features):
+                store = self._store(k, x, int(slots.max()) + 1)
+                stack = torch.empty((b, f, *x.shape[2:]), dtype=x.dtype, device=x.device)
+                stack.index_copy_(0, on, torch.cat([store.index_select(0, slots[on])[:, 1:], x[:len(on)]], 1))
+                stack.index_copy_(0, anew, x[len(on):].reshape(len(anew), f, *x.shape[2:]))
+                store.index_copy_(0, slots, stack)
+                stacks.append(stack)
+            return self.net.heads(tuple(stacks))
+
+    def _store(self, k: int, x: torch.Tensor, slots: int) -> torch.Tensor:
+        """Encoder k's stacks, grown to hold `slots` slots (one acted on for the first time has no stack to reuse)."""
+        if len(self.stacks) <= k:
+            self.stacks += (x.new_zeros((0, self.net.obs_shape[0], *x.shape[2:])),)
+        store = self.stacks[k]
+        if store.shape[0] < slots:
+            store = torch.cat([store, store.new_zeros((slots - store.shape[0], *store.shape[1:]))])
+            self.stacks = self.stacks[:k] + (store,) + self.stacks[k + 1:]
+        return store
 
 
 # Relative L2 error of one layer's bfloat16 gradient against float32's beyond which it is wrong, not rounded:

@@ -24,6 +24,9 @@ Contract (N AVs):
   `ppo_minibatches` minibatches, clipped) for each network that trains this update, with advantages from
   GAE over the batch, advantage normalisation and value normalisation as configured, the learning rate
   and entropy weight of the schedules at `progress` in [0, 1]; returns loss statistics.
+- A frame goes through the network's first layer once where samples share it (its depth kernel is 1, and an agent's
+  stack shifts by one frame per decision): the update reads each minibatch's distinct frames (`Batch.frame_sources`),
+  and acting in a collecting region keeps each slot's last outputs (`agents.model.FrameMemory`).
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ from torch.optim.swa_utils import get_ema_multi_avg_fn
 
 from agents.config import TrainConfig, schedule, use_bf16
 from agents.losses import OPTIMIZERS, ValueNorm, actor_critic_loss, gae, masked_logits, normalize
-from agents.model import BF16_GRADIENT_TOL, ActorCritic, bf16_gradient_error
+from agents.model import BF16_GRADIENT_TOL, ActorCritic, FrameMemory, bf16_gradient_error
 from cosim.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -86,8 +89,43 @@ class Batch:
         # One row copy each, in the layout they are stored in: advanced indexing (obs[t, w, i], or a flat obs[rows])
         # took 12-18 times as long (1.0 against 0.05 ms for an acting batch of 20, 6.9 against 0.6 for a PPO
         # minibatch of 140; one thread, AMD EPYC): a tenth of the learner's time while collecting.
-        stored = self.obs.permute(0, 1, 2, 3, 5, 6, 4).flatten(0, 2)  # (T * W * N, F, H, W, C)
-        return stored.index_select(0, rows).permute(0, 1, 4, 2, 3)
+        return self._stored().flatten(0, 2).index_select(0, rows).permute(0, 1, 4, 2, 3)
+
+    def frames(self, ids: torch.Tensor) -> torch.Tensor:
+        """Frames (K, C, H, W) by flat index `sample * F + frame` (`sample` as in `observations`), copied."""
+        return self._stored().flatten(0, 3).index_select(0, ids).permute(0, 3, 1, 2)
+
+    def continues(self, rows: torch.Tensor) -> torch.Tensor:
+        """For samples `rows` (M,) (flat, as in `observations`), whether the same agent's sample one step earlier is
+        valid and its observation's frames but the oldest are this one's but the newest (M,) bool: a stack that
+        shifted by one frame (not one that began anew, after a reset or in a slot another agent took over)."""
+        step = self.valid[0].numel()
+        earlier = rows - step
+        out = (earlier >= 0) & self.valid.flatten()[earlier.clamp(min=0)]
+        at = out.nonzero().squeeze(1)
+        stored = self._stored().flatten(0, 2)  # (T * W * N, F, H, W, C)
+        now, before = stored.index_select(0, rows[at]), stored.index_select(0, earlier[at])
+        out[at] = (now[:, :-1] == before[:, 1:]).flatten(1).all(1)
+        return out
+
+    def frame_sources(self, rows: torch.Tensor) -> torch.Tensor:
+        """For samples `rows` (M,), where each of their frames is stored first (M, F), as a flat index (`frames`):
+        back through the same agent's samples that continue one another (`continues`), in the one where the frame
+        was the newest, or in the first of them. Samples that share a frame get the same index."""
+        f = self.obs.shape[3]
+        step = self.valid[0].numel()
+        earlier = torch.full((self.valid.numel(),), -1, dtype=torch.long)
+        earlier[rows] = torch.where(self.continues(rows), rows - step, -1)
+        sample, frame = rows[:, None].repeat(1, f), torch.arange(f).repeat(len(rows), 1)
+        for _ in range(f - 1):  # frame k of a continuing sample is frame k + 1 of the one before it
+            back = earlier[sample]
+            move = (frame < f - 1) & (back >= 0)
+            sample, frame = torch.where(move, back, sample), frame + move
+        return sample * f + frame
+
+    def _stored(self) -> torch.Tensor:
+        """The observations as stored, (T, W, N, F, H, W, C) contiguous."""
+        return self.obs.permute(0, 1, 2, 3, 5, 6, 4)
 
 
 # The most samples one forward+backward of the update takes: a larger minibatch (A2C's whole batch, PPO's of a large
@@ -145,6 +183,7 @@ class MultiAgentPolicy:
         self.ema = tc.policy_ema
         self.averaged = [copy.deepcopy(net).requires_grad_(False) for net in self.nets] if self.ema else []
         self.averaged_counts = [0] * len(self.averaged)  # averages taken into each averaged copy so far
+        self._memories: dict[int, FrameMemory] | None = None  # in a collecting region: network id -> its memory
 
     def owner(self, agent: int) -> int:
         """Index into `nets` of AV `agent`'s network."""
@@ -213,21 +252,34 @@ class MultiAgentPolicy:
     def collecting(self) -> Iterator[None]:
         """A region in which the networks' weights do not change (one update's collection): where they act in
         bfloat16, autocast casts each weight once for the region and reuses it, instead of at every forward (0.8-1.5
-        ms of the 2-9 ms of an acting forward of 1-24 samples on one thread, Intel Xeon with AMX)."""
-        with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
-            yield
+        ms of the 2-9 ms of an acting forward of 1-24 samples on one thread, Intel Xeon with AMX); and each network
+        keeps the first layer's outputs of the observations it acted on (`FrameMemory`, `act`'s `slots`)."""
+        self._memories = {}
+        try:
+            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
+                yield
+        finally:
+            self._memories = None
 
     @torch.no_grad()
     def act(self, obs: torch.Tensor, agents: torch.Tensor, update: int, masks: torch.Tensor | None = None,
-            greedy: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            greedy: bool = False, slots: torch.Tensor | None = None,
+            continues: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Sampled actions, their log-probabilities and values (M,) for observations (M, F, C, H, W) of the AVs
         `agents` (M,) under their action masks (M, A; None: every action allowed), one forward per network in
         play; `greedy`: the most probable actions of the networks they play (`played_net`) instead, in float32 as
-        evaluation plays them (validation)."""
+        evaluation plays them (validation). In a collecting region, `slots` (M,) (worker and agent) and `continues`
+        (M,) (`Batch.continues`) let a network run its first layer on the newest frame of an observation that
+        continues its slot's last one only (`FrameMemory`)."""
         m = len(agents)
         actions, logp, values = torch.zeros(m, dtype=torch.int64), torch.zeros(m), torch.zeros(m)
         for net, rows in self._groups(agents, update, played=greedy):
-            logits, v = net(obs[rows].to(self.device), float32=greedy)
+            if slots is not None and self._memories is not None and not greedy:
+                memory = self._memories.setdefault(id(net), FrameMemory(net))
+                logits, v = memory(obs[rows].to(self.device), slots[rows].to(self.device),
+                                   continues[rows].to(self.device))
+            else:
+                logits, v = net(obs[rows].to(self.device), float32=greedy)
             # validate_args=False: the checks of its arguments were a tenth of a small batch's acting.
             dist = torch.distributions.Categorical(
                 logits=logits if masks is None else masked_logits(logits, self._mask(masks[rows])), validate_args=False)
@@ -292,9 +344,13 @@ class MultiAgentPolicy:
             target = vn.normalize(ret.to(self.device))
         else:
             target = ret.to(self.device)
-        # The samples' observations are read from the batch chunk by chunk, not gathered here first: a copy of every
+        # The samples' frames are read from the batch chunk by chunk, not gathered here first: a copy of every
         # observation of the update (tens of MB) cost more than the standardisation of its input.
         rows = flat.flatten().nonzero().squeeze(1)
+        sources = b.frame_sources(rows)  # (m, F)
+        # Samples ordered agent by agent, then in time, within a minibatch: a chunk then holds runs of an agent's
+        # consecutive samples, which share all their frames but one.
+        column_first = (rows % flat.shape[1]) * steps + rows // flat.shape[1]
         actions, old_logp, masks = b.actions[sel], b.logp[sel], b.masks[sel]
         adv, old_logp, actions = adv.to(self.device), old_logp.to(self.device), actions.to(self.device)
         m = len(adv)
@@ -307,6 +363,7 @@ class MultiAgentPolicy:
         for _ in range(epochs):
             order = torch.randperm(m) if minibatches > 1 else torch.arange(m)
             for idx in order.chunk(minibatches):
+                idx = idx[column_first[idx].argsort()]
                 n = len(idx)
                 dev_idx = idx.to(self.device)
                 a = adv[dev_idx]
@@ -317,9 +374,11 @@ class MultiAgentPolicy:
                 for start in range(0, n, size):
                     part, at = idx[start:start + size], slice(start, start + size)
                     c = len(part)
-                    # Padded with repeats of its own samples to a size `bucket` rounds to; only the first c outputs
-                    # reach the loss, so the gradient is the unpadded one.
-                    logits, v = net(b.observations(rows[torch.cat([part, part[:bucket(c) - c]])]).to(self.device))
+                    # Padded with repeats of its own samples to a size `bucket` rounds to (its frames too); only the
+                    # first c outputs reach the loss, so the gradient is the unpadded one.
+                    ids, index = sources[torch.cat([part, part[:bucket(c) - c]])].unique(return_inverse=True)
+                    ids = torch.cat([ids, ids[:bucket(len(ids)) - len(ids)]])
+                    logits, v = net.forward_frames(b.frames(ids).to(self.device), index.to(self.device))
                     terms = actor_critic_loss(logits[:c], v[:c], actions[dev_idx[at]], a[at], target[dev_idx[at]],
                                               ent, tc.value_coef, old_logp[dev_idx[at]], clip,
                                               self._mask(masks[part]))
@@ -333,7 +392,7 @@ class MultiAgentPolicy:
                 n_steps += 1
                 totals["grad_norm"] = totals.get("grad_norm", 0.0) + float(grad_norm)
         if net.obs_norm is not None:  # after the update: the next batch is acted on and trained on alike
-            net.obs_norm.update(b.observations(rows)[:, -1])
+            net.obs_norm.update(b.frames(rows * sources.shape[1] + sources.shape[1] - 1))
         with torch.no_grad():
             predicted = values[flat].to(self.device)  # as the critic predicted them, before this update's vn stats
             ret_dev = ret.to(self.device)

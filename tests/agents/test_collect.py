@@ -1,11 +1,19 @@
-"""What a collected step trains on, on the real env."""
+"""What a collected step trains on, and how the learner acts on it, on the real env."""
+
+import functools
 
 import numpy as np
 import pytest
+import torch
 
 import cosim
-from agents.collect import training_reward
-from cosim.workers import _EnvRunner
+from agents.collect import collect, training_reward
+from agents.config import train_config
+from agents.model import VelocityMapEncoder
+from agents.multiagent import Batch, MultiAgentPolicy
+from cosim.config import load_config
+from cosim.environment.factory import parallel_env
+from cosim.workers import WorkerPool, _EnvRunner
 
 pytestmark = pytest.mark.sumo  # runs SUMO (libsumo or netconvert)
 
@@ -40,3 +48,37 @@ def test_the_egoistic_training_reward_is_each_avs_own_utility_on_the_real_env() 
     finally:
         env.close()
     assert social > 0  # the env's reward had a part for the others, which the egoistic one leaves out
+
+
+def test_acting_on_the_real_env_runs_the_first_layer_on_new_frames_only_and_values_as_a_whole_forward(
+        monkeypatch) -> None:
+    # The env's stacks shift by one frame per decision, so after an agent's first decision only its newest frame
+    # goes through the first layer; what the learner recorded is what the network gives the whole observations.
+    cfg = load_config("configs/smoke.yaml", {"train.feature_dim": 16, "train.head_hidden": 16,
+                                             "train.precision": "float32", "train.obs_norm": True})
+    pool = WorkerPool(functools.partial(parallel_env, cfg.to_dict()), 2, 0, 60.0)
+    try:
+        spec = pool.spec
+        torch.manual_seed(0)
+        policy = MultiAgentPolicy(len(spec.agents), spec.obs_shape, spec.n_actions, train_config(cfg))
+        batch = Batch.allocate(spec.max_steps, 2, len(spec.agents), spec.obs_shape, getattr(torch, spec.obs_dtype),
+                               spec.n_actions)
+        seen: list[int] = []
+        frame_features = VelocityMapEncoder.frame_features
+        monkeypatch.setattr(VelocityMapEncoder, "frame_features",
+                            lambda self, x: seen.append(len(x)) or frame_features(self, x))
+        with policy.collecting():
+            got = collect(pool, policy, batch, [21, 22], update=0)
+    finally:
+        pool.close()
+    assert len(got.episodes) == 2
+    rows = batch.valid.flatten().nonzero().squeeze(1)
+    continuing = batch.continues(rows)
+    f = spec.obs_shape[0]
+    assert continuing.float().mean() > 0.7
+    finals = int(batch.truncated.sum())  # their final observations were valued whole, in one forward
+    assert sum(seen) == len(rows) + (f - 1) * int((~continuing).sum()) + f * finals
+    t_, w_, i_ = batch.valid.nonzero(as_tuple=True)
+    with torch.no_grad():
+        _, values = policy.nets[0](batch.observations(rows))
+    torch.testing.assert_close(batch.values[t_, w_, i_], values, atol=1e-5, rtol=1e-5)
