@@ -12,9 +12,10 @@ and the critic share the encoder, as the paper's network does, unless `shared_en
 (`ObsNorm`: running statistics the learner updates, saved with the weights), as SB3's `VecNormalize` does for
 vector observations; without it, as in the paper, the input is only scaled to [0, 1]. With `feature_norm=True`
 (`train.feature_norm`) the encoder normalises its features (LayerNorm between its FC layer and its ReLU).
-The first layer's depth kernel is 1, so it runs on each frame alone (`frame_features`): `forward_frames` takes
-observations as their distinct frames and where each observation's are, and `FrameMemory` keeps the outputs of
-frames already seen while acting.
+The first layer's depth kernel is 1 and the second's depth stride 1, so a frame's part in an observation's second
+layer is the same wherever the frame stands in a stack (`frame_features`: its first-layer output convolved with each of
+the second layer's depth taps): `forward_frames` takes observations as their distinct frames and where each
+observation's are, and `FrameMemory` keeps the parts of frames already seen while acting.
 """
 
 from __future__ import annotations
@@ -91,16 +92,40 @@ class VelocityMapEncoder(nn.Module):
         return self.fc(self.conv(x))
 
     def frame_features(self, x: torch.Tensor) -> torch.Tensor:
-        """`prepare`'s output of single frames (K, C, 1, H, W) -> the first layer's (Conv3D and ReLU) output of each,
-        (K, 1, h1, w1, c1) channels last. Its depth kernel is 1, so a frame's output is the same in any stack: a frame
-        that several observations share (a stack shifts by one frame per decision) is computed once."""
-        return self.conv[1](self.conv[0](x)).permute(0, 2, 3, 4, 1)
+        """`prepare`'s output of single frames (K, C, 1, H, W) -> each frame's part in the second layer: its first-layer
+        output (Conv3D and ReLU) convolved with each of the second Conv3D's depth taps, (K, kd, h2, w2, c2) (`taps`).
+        The second layer's output at depth d of a stack is the sum over taps k of tap k of the stack's frame d - pd + k
+        (pd its depth padding), plus its bias (`encode_frames`): a frame that several observations share (a stack
+        shifts by one frame per decision) goes through the first two layers once, a fifth of their work per sample."""
+        return self.taps(self.conv[1](self.conv[0](x)).squeeze(2))
 
-    def encode_stacks(self, stacks: torch.Tensor) -> torch.Tensor:
-        """The first layer's outputs of each observation's frames, (B, F, h1, w1, c1) oldest to newest (as
-        `frame_features` gives them, stacked) -> (B, feature_dim), as `encode` of the observations gives."""
-        y = stacks.permute(0, 4, 1, 2, 3)  # (B, c1, F, h1, w1), channels-last in memory where the stacks are contiguous
-        for layer in itertools.islice(self.conv, 2, None):
+    def taps(self, y: torch.Tensor) -> torch.Tensor:
+        """First-layer outputs of single frames (K, c1, h1, w1) -> their 2D convolution with each depth tap of the
+        second Conv3D (its depth stride is 1), (K, kd, h2, w2, c2): one Conv2D with kd x c2 output channels."""
+        conv = self.conv[2]
+        kd, c2 = conv.kernel_size[0], conv.out_channels
+        weight = conv.weight.permute(2, 0, 1, 3, 4).reshape(kd * c2, conv.in_channels, *conv.kernel_size[1:])
+        out = nn.functional.conv2d(y, weight, None, conv.stride[1:], conv.padding[1:])  # (K, kd * c2, h2, w2)
+        return out.unflatten(1, (kd, c2)).permute(0, 1, 3, 4, 2).contiguous()
+
+    def encode_frames(self, features: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        """Distinct frames' `frame_features` (K, kd, h2, w2, c2) and, for each of B observations, where its frames
+        are in them, oldest to newest (B, F) -> (B, feature_dim), as `encode` of the observations gives."""
+        conv = self.conv[2]
+        kd, pd = conv.kernel_size[0], conv.padding[0]
+        b, f = index.shape
+        # Each (observation, depth)'s output sums the taps of the frames under its kernel; the depth padding's zero
+        # frames add nothing, so they are left out of its sum (bags of fewer rows at the stack's ends).
+        window = nn.functional.pad(index, (pd, kd - 1 - pd), value=-1).unfold(1, kd, 1)  # (B, F, kd)
+        inside = window >= 0
+        rows = (window * kd + torch.arange(kd, device=index.device))[inside]
+        counts = inside.sum(-1).flatten()
+        offsets = torch.cat([counts.new_zeros(1), counts.cumsum(0)[:-1]])
+        flat = features.flatten(2)
+        out = nn.functional.embedding_bag(rows, flat.reshape(-1, flat.shape[2]), offsets, mode="sum")
+        # The bias in the sums' dtype: a float32 bias would promote a bfloat16 forward's tensors to float32 here.
+        y = torch.relu(out.view(b, f, *features.shape[2:]) + conv.bias.to(out.dtype)).permute(0, 4, 1, 2, 3)
+        for layer in itertools.islice(self.conv, 4, None):
             y = layer(y)
         return self.fc(y)
 
@@ -230,30 +255,35 @@ class ActorCritic(nn.Module):
 
     def forward(self, obs: torch.Tensor, float32: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, F, C, H, W) -> logits (B, A), values (B,), float32; `float32`: without bfloat16 autocast even where
-        the network trains with it (validation plays as evaluation does)."""
-        b, f = obs.shape[:2]
+        the network trains with it (validation plays as evaluation does). Through Table 1's Conv3D stack itself,
+        the fastest way for observations that share no frames (scripts/bench_frames.py)."""
         with self._precision(obs, float32):
-            return self.heads(tuple(x.reshape(b, f, *x.shape[2:]) for x in self.frame_features(obs.flatten(0, 1))))
+            x = prepare(obs, self.obs_norm)
+            h = self.features.encode(x)
+            return self._outputs(h, h if self.critic_features is None else self.critic_features.encode(x))
 
     def forward_frames(self, frames: torch.Tensor, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """`forward` of B observations given as their distinct frames (K, C, H, W) and, for each observation, where
-        its frames are in them, oldest to newest (B, F): the first layer runs once per distinct frame."""
+        its frames are in them, oldest to newest (B, F): the first two layers' work is once per distinct frame."""
         with self._precision(frames):
-            return self.heads(tuple(x.index_select(0, index.flatten()).view(*index.shape, *x.shape[2:])
-                                    for x in self.frame_features(frames)))
+            return self.from_features(self.frame_features(frames), index)
 
     def frame_features(self, frames: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """Frames (K, C, H, W) of any dtype the observations have -> the first layer's output of each (K, 1, h1, w1,
-        c1) in every encoder (the actor's, then the critic's where it has its own; `VelocityMapEncoder.frame_features`),
-        in the dtype of the forward's precision where called in it."""
+        """Frames (K, C, H, W) of any dtype the observations have -> each one's part in the second layer (K, kd, h2,
+        w2, c2) in every encoder (the actor's, then the critic's where it has its own;
+        `VelocityMapEncoder.frame_features`), in the dtype of the forward's precision where called in it."""
         x = prepare(frames.unsqueeze(1), self.obs_norm)
         return tuple(encoder.frame_features(x) for encoder in self._encoders())
 
-    def heads(self, stacks: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Every encoder's first-layer outputs of B observations' frames (B, F, h1, w1, c1) (`frame_features`,
-        stacked) -> logits (B, A), values (B,), float32."""
-        h = self.features.encode_stacks(stacks[0])
-        critic_h = h if self.critic_features is None else self.critic_features.encode_stacks(stacks[1])
+    def from_features(self, features: tuple[torch.Tensor, ...], index: torch.Tensor) -> tuple[torch.Tensor,
+                                                                                              torch.Tensor]:
+        """Every encoder's `frame_features` of distinct frames and where each of B observations' frames are in them
+        (B, F) -> logits (B, A), values (B,), float32."""
+        h = self.features.encode_frames(features[0], index)
+        return self._outputs(h, h if self.critic_features is None else
+                             self.critic_features.encode_frames(features[1], index))
+
+    def _outputs(self, h: torch.Tensor, critic_h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.actor(h).float(), self.critic(critic_h).squeeze(-1).float()
 
     def _encoders(self) -> tuple[VelocityMapEncoder, ...]:
@@ -264,8 +294,10 @@ class ActorCritic(nn.Module):
         return self.critic_features is None
 
     def value(self, obs: torch.Tensor) -> torch.Tensor:
-        """(B, F, C, H, W) -> (B,), float32."""
-        return self(obs)[1]
+        """(B, F, C, H, W) -> (B,), float32: the critic's encoder alone."""
+        encoder = self.features if self.critic_features is None else self.critic_features
+        with self._precision(obs):
+            return self.critic(encoder.encode(prepare(obs, self.obs_norm))).squeeze(-1).float()
 
     @torch.no_grad()
     def act(self, obs: np.ndarray | torch.Tensor, greedy: bool = False,
@@ -283,46 +315,56 @@ class ActorCritic(nn.Module):
 
 
 class FrameMemory:
-    """For a network whose weights stay as they are (the learner's acting through one collection), the first layer's
-    outputs of each slot's last observation (a slot: one agent of one worker), per encoder: an observation that
-    continues its slot's last one (its stack shifted by a frame: `agents.multiagent.Batch.continues`) runs the first
-    layer on its newest frame only, the other frames' outputs taken from the last one's (`__call__`)."""
+    """For a network whose weights stay as they are (the learner's acting through one collection), the frame features
+    (`ActorCritic.frame_features`) of each slot's last F frames (a slot: one agent of one worker), per encoder, in a
+    ring per slot: an observation that continues its slot's last one (its stack shifted by a frame:
+    `agents.multiagent.Batch.continues`) runs the first two layers on its newest frame only, which takes the place of
+    the slot's oldest, and reads the others where they are (`__call__`)."""
 
     def __init__(self, net: ActorCritic) -> None:
         self.net = net
-        self.stacks: tuple[torch.Tensor, ...] = ()  # per encoder (slots, F, h1, w1, c1): each slot's last stack
+        self.rings: tuple[torch.Tensor, ...] = ()  # per encoder (slots * F, kd, h2, w2, c2): slot s's at s * F ...
+        self.newest = torch.zeros(0, dtype=torch.long)  # (slots,) where in its ring each slot's newest frame is
 
     def __call__(self, obs: torch.Tensor, slots: torch.Tensor, continues: torch.Tensor) -> tuple[torch.Tensor,
                                                                                                    torch.Tensor]:
-        """`net(obs)` for observations (B, F, C, H, W) of slots (B,), of which those `continues` (B,) flags continue
-        the slot's last one; every slot's stack is then these observations'."""
-        b, f = obs.shape[:2]
+        """`net(obs)` for observations (B, F, C, H, W) of distinct slots (B,), of which those `continues` (B,) flags
+        continue the slot's last one; every slot's ring then holds these observations' frames."""
+        f = obs.shape[1]
         on, anew = continues.nonzero().squeeze(1), (~continues).nonzero().squeeze(1)
         ids = torch.cat([on * f + f - 1, (anew[:, None] * f + torch.arange(f, device=obs.device)).flatten()])
         # Selected channels last, the layout the learner's observations are stored in (agents.multiagent.Batch): one
         # row copy per frame, where a selection in the (C, H, W) view transposes every frame.
         frames = obs.flatten(0, 1).permute(0, 2, 3, 1).index_select(0, ids).permute(0, 3, 1, 2)
+        self._grow(int(slots.max()) + 1, obs.device)
+        newest = self.newest.index_select(0, slots)
+        newest[on] = (newest[on] + 1) % f
+        newest[anew] = f - 1
+        self.newest.index_copy_(0, slots, newest)
+        at = torch.cat([slots[on] * f + newest[on],
+                        (slots[anew, None] * f + torch.arange(f, device=obs.device)).flatten()])
         with self.net._precision(obs):
             features = self.net.frame_features(frames)
-            stacks = []
-            for k, x in enumerate(features):
-                store = self._store(k, x, int(slots.max()) + 1)
-                stack = torch.empty((b, f, *x.shape[2:]), dtype=x.dtype, device=x.device)
-                stack.index_copy_(0, on, torch.cat([store.index_select(0, slots[on])[:, 1:], x[:len(on)]], 1))
-                stack.index_copy_(0, anew, x[len(on):].reshape(len(anew), f, *x.shape[2:]))
-                store.index_copy_(0, slots, stack)
-                stacks.append(stack)
-            return self.net.heads(tuple(stacks))
+            rows = len(self.newest) * f
+            self.rings = tuple(self._grown(self.rings[k] if self.rings else x.new_zeros((0, *x.shape[1:])), rows)
+                               for k, x in enumerate(features))
+            for ring, x in zip(self.rings, features, strict=True):
+                ring.index_copy_(0, at, x)
+            # Oldest to newest: the ring from the place after the newest frame on.
+            index = slots[:, None] * f + (newest[:, None] + 1 + torch.arange(f, device=obs.device)) % f
+            return self.net.from_features(self.rings, index)
 
-    def _store(self, k: int, x: torch.Tensor, slots: int) -> torch.Tensor:
-        """Encoder k's stacks, grown to hold `slots` slots (one acted on for the first time has no stack to reuse)."""
-        if len(self.stacks) <= k:
-            self.stacks += (x.new_zeros((0, self.net.obs_shape[0], *x.shape[2:])),)
-        store = self.stacks[k]
-        if store.shape[0] < slots:
-            store = torch.cat([store, store.new_zeros((slots - store.shape[0], *store.shape[1:]))])
-            self.stacks = self.stacks[:k] + (store,) + self.stacks[k + 1:]
-        return store
+    def _grow(self, slots: int, device: torch.device) -> None:
+        """Room for `slots` slots (one acted on for the first time has no frames to reuse)."""
+        if len(self.newest) < slots:
+            self.newest = torch.cat([self.newest.to(device),
+                                     torch.zeros(slots - len(self.newest), dtype=torch.long, device=device)])
+
+    @staticmethod
+    def _grown(ring: torch.Tensor, rows: int) -> torch.Tensor:
+        if ring.shape[0] < rows:
+            ring = torch.cat([ring, ring.new_zeros((rows - ring.shape[0], *ring.shape[1:]))])
+        return ring
 
 
 # Relative L2 error of one layer's bfloat16 gradient against float32's beyond which it is wrong, not rounded:
@@ -343,27 +385,40 @@ def bf16_gradient_error(obs_shape: tuple[int, ...], n_actions: int, feature_dim:
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(0)
         net = ActorCritic(obs_shape, n_actions, feature_dim=feature_dim, head_hidden=head_hidden).to(device)
-        layers = {name: m for name, m in net.named_modules() if isinstance(m, nn.Conv3d | nn.Linear)}
+        # Each kernel as training runs it, with the module whose weight (and bias) it trains: the second Conv3D runs as
+        # its depth taps (a Conv2D, `VelocityMapEncoder.taps`), on the first layer's output of single frames.
+        kernels: dict[str, tuple[Any, nn.Module]] = {
+            name: (m, m) for name, m in net.named_modules()
+            if isinstance(m, nn.Conv3d | nn.Linear) and not name.endswith("conv.2")}
         inputs: dict[str, torch.Tensor] = {}
         hooks = [m.register_forward_hook(lambda m, i, o, name=name: inputs.__setitem__(name, i[0].detach()))
-                 for name, m in layers.items()]
-        with torch.no_grad():
-            net(torch.rand((2, *obs_shape), device=device))
+                 for name, (m, _) in kernels.items()]
+        for name, m in net.named_modules():
+            if isinstance(m, VelocityMapEncoder):
+                taps = f"{name}.conv.2 (depth taps)"
+                kernels[taps] = (m.taps, m.conv[2])
+                hooks.append(m.conv[1].register_forward_hook(
+                    lambda m, i, o, name=taps: inputs.__setitem__(name, o.detach().squeeze(2))))
+        with torch.no_grad():  # as the update runs the network: frame by frame
+            frames = obs_shape[0]
+            net.forward_frames(torch.rand((2 * frames, *obs_shape[1:]), device=device),
+                               torch.arange(2 * frames, device=device).view(2, frames))
         for hook in hooks:
             hook.remove()
         # Positive upstream gradients on non-negative inputs (observations, ReLU outputs): the weight and bias
         # gradients are sums without cancellation, so rounding stays relative to them.
-        upstream = {name: 0.5 + torch.rand_like(layer(inputs[name])) for name, layer in layers.items()}
+        upstream = {name: 0.5 + torch.rand_like(fn(inputs[name])) for name, (fn, _) in kernels.items()}
     worst, largest = "", 0.0
-    for name, layer in layers.items():
+    for name, (fn, layer) in kernels.items():
         grads = []
         for bf16 in (False, True):
             x = inputs[name].clone().requires_grad_(True)
             layer.zero_grad()
             with torch.autocast(x.device.type, dtype=torch.bfloat16, enabled=bf16):
-                out = layer(x)
+                out = fn(x)
             (out.float() * upstream[name]).sum().backward()
-            grads.append({"weight": layer.weight.grad, "bias": layer.bias.grad, "input": x.grad})
+            parts = {"weight": layer.weight.grad, "bias": layer.bias.grad, "input": x.grad}
+            grads.append({part: grad for part, grad in parts.items() if grad is not None})
         for part, ref in grads[0].items():
             got = grads[1][part].double()
             ref = ref.double()

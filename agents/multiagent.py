@@ -24,9 +24,10 @@ Contract (N AVs):
   `ppo_minibatches` minibatches, clipped) for each network that trains this update, with advantages from
   GAE over the batch, advantage normalisation and value normalisation as configured, the learning rate
   and entropy weight of the schedules at `progress` in [0, 1]; returns loss statistics.
-- A frame goes through the network's first layer once where samples share it (its depth kernel is 1, and an agent's
-  stack shifts by one frame per decision): the update reads each minibatch's distinct frames (`Batch.frame_sources`),
-  and acting in a collecting region keeps each slot's last outputs (`agents.model.FrameMemory`).
+- A frame goes through the network's first two layers once where samples share it (the first's depth kernel is 1,
+  the second's depth stride 1, and an agent's stack shifts by one frame per decision: `ActorCritic.frame_features`):
+  the update reads each minibatch's distinct frames (`Batch.frame_sources`), and acting in a collecting region keeps
+  each slot's last frame features (`agents.model.FrameMemory`).
 """
 
 from __future__ import annotations
@@ -253,7 +254,7 @@ class MultiAgentPolicy:
         """A region in which the networks' weights do not change (one update's collection): where they act in
         bfloat16, autocast casts each weight once for the region and reuses it, instead of at every forward (0.8-1.5
         ms of the 2-9 ms of an acting forward of 1-24 samples on one thread, Intel Xeon with AMX); and each network
-        keeps the first layer's outputs of the observations it acted on (`FrameMemory`, `act`'s `slots`)."""
+        keeps the frame features of the observations it acted on (`FrameMemory`, `act`'s `slots`)."""
         self._memories = {}
         try:
             with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.bf16):
@@ -269,7 +270,7 @@ class MultiAgentPolicy:
         `agents` (M,) under their action masks (M, A; None: every action allowed), one forward per network in
         play; `greedy`: the most probable actions of the networks they play (`played_net`) instead, in float32 as
         evaluation plays them (validation). In a collecting region, `slots` (M,) (worker and agent) and `continues`
-        (M,) (`Batch.continues`) let a network run its first layer on the newest frame of an observation that
+        (M,) (`Batch.continues`) let a network run its first two layers on the newest frame of an observation that
         continues its slot's last one only (`FrameMemory`)."""
         m = len(agents)
         actions, logp, values = torch.zeros(m, dtype=torch.int64), torch.zeros(m), torch.zeros(m)

@@ -1,12 +1,14 @@
-"""Time the network with each frame through its first layer once, against the whole observations, in one process.
+"""Time the network with each frame through its first two layers once, against the whole observations, in one process.
 
-An agent's VelocityMap stack shifts by one frame per decision and the first Conv3D's depth kernel is 1, so of a
+An agent's VelocityMap stack shifts by one frame per decision, the first Conv3D's depth kernel is 1 and the second's
+depth stride 1, so a frame's part in the first two layers is the same wherever it stands in a stack, and of a
 sample's F frames F - 1 were in the sample before it. Two measurements, the two sides interleaved call by call so
 that a machine whose speed drifts slows both alike (medians over `--reps`):
 
 - acting: one forward of `--acting` observations that continue their slots' last ones through
-  `agents.model.FrameMemory` (the first layer on the newest frames only), against `ActorCritic.forward` of the same
-  observations, on one thread (training acts on one while the workers step on the other core);
+  `agents.model.FrameMemory` (the first two layers on the newest frames only), against `ActorCritic.forward` of the
+  same observations (Table 1's Conv3D stack), on one thread (training acts on one while the workers step on the other
+  core);
 - update: one forward+backward of `--update` samples drawn from agents' runs of `--run` consecutive decisions,
   given as their distinct frames (`ActorCritic.forward_frames`: 1 + (F - 1) / run frames per sample), against the
   whole observations, on all cores, with the loss of A2C.

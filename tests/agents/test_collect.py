@@ -50,10 +50,10 @@ def test_the_egoistic_training_reward_is_each_avs_own_utility_on_the_real_env() 
     assert social > 0  # the env's reward had a part for the others, which the egoistic one leaves out
 
 
-def test_acting_on_the_real_env_runs_the_first_layer_on_new_frames_only_and_values_as_a_whole_forward(
+def test_acting_on_the_real_env_runs_the_first_layers_on_new_frames_only_and_values_as_a_whole_forward(
         monkeypatch) -> None:
     # The env's stacks shift by one frame per decision, so after an agent's first decision only its newest frame
-    # goes through the first layer; what the learner recorded is what the network gives the whole observations.
+    # goes through the first two layers; what the learner recorded is what the network gives the whole observations.
     cfg = load_config("configs/smoke.yaml", {"train.feature_dim": 16, "train.head_hidden": 16,
                                              "train.precision": "float32", "train.obs_norm": True})
     pool = WorkerPool(functools.partial(parallel_env, cfg.to_dict()), 2, 0, 60.0)
@@ -76,8 +76,7 @@ def test_acting_on_the_real_env_runs_the_first_layer_on_new_frames_only_and_valu
     continuing = batch.continues(rows)
     f = spec.obs_shape[0]
     assert continuing.float().mean() > 0.7
-    finals = int(batch.truncated.sum())  # their final observations were valued whole, in one forward
-    assert sum(seen) == len(rows) + (f - 1) * int((~continuing).sum()) + f * finals
+    assert sum(seen) == len(rows) + (f - 1) * int((~continuing).sum())  # truncated agents' finals go whole
     t_, w_, i_ = batch.valid.nonzero(as_tuple=True)
     with torch.no_grad():
         _, values = policy.nets[0](batch.observations(rows))

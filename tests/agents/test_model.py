@@ -41,48 +41,65 @@ def test_uint8_is_scaled_like_float() -> None:
     torch.testing.assert_close(a, c, atol=1e-3, rtol=1e-3)
 
 
-def stacked(x: torch.Tensor, b: int) -> torch.Tensor:
-    """The first conv's input of B observations, one frame each (B * F, C, 1, H, W) -> (B, C, F, H, W)."""
-    return x.squeeze(2).unflatten(0, (b, -1)).transpose(1, 2)
-
-
 @pytest.mark.parametrize("bf16", [False, True])
-def test_the_first_conv_gets_each_frame_channels_last_in_the_forward_dtype(bf16: bool) -> None:
-    # (B, F, C, H, W) uint8 in; the Conv3D sees every frame as a volume of depth 1 (its depth kernel is 1, so each
-    # frame's output is its own), (B * F, C, 1, H, W) scaled to [0, 1], laid out channels-last (oneDNN's fast
-    # layout), in bfloat16 under the training's autocast (no second cast) and float32 without it.
+@pytest.mark.parametrize("by_frame", [False, True])
+def test_the_first_conv_gets_its_input_channels_last_in_the_forward_dtype(bf16: bool, by_frame: bool) -> None:
+    # (B, F, C, H, W) uint8 in; the Conv3D sees (B, C, F, H, W) in `forward`, and each frame as a volume of depth 1
+    # (K, C, 1, H, W) in `forward_frames` (its depth kernel is 1), scaled to [0, 1], laid out channels-last (oneDNN's
+    # fast layout), in bfloat16 under the training's autocast (no second cast) and float32 without it.
     net = ActorCritic((2, 4, 8, 16), feature_dim=32, head_hidden=16, bf16=bf16)
     seen = []
     net.features.conv[0].register_forward_pre_hook(lambda module, args: seen.append(args[0]))
     raw = torch.randint(0, 256, (3, 2, 4, 8, 16), dtype=torch.uint8)
     with torch.no_grad():
-        net(raw)
+        if by_frame:
+            net.forward_frames(raw.flatten(0, 1), torch.arange(6).view(3, 2))
+        else:
+            net(raw)
     (x,) = seen
     assert x.dtype == (torch.bfloat16 if bf16 else torch.float32)
-    assert x.shape == (6, 4, 1, 8, 16) and x.is_contiguous(memory_format=torch.channels_last_3d)
+    assert x.shape == ((6, 4, 1, 8, 16) if by_frame else (3, 4, 2, 8, 16))
+    assert x.is_contiguous(memory_format=torch.channels_last_3d)
     expected = raw.permute(0, 2, 1, 3, 4).float() / 255.0
-    torch.testing.assert_close(stacked(x, 3).float(), expected, atol=0 if not bf16 else 4e-3,
-                               rtol=0 if not bf16 else 4e-3)
+    if by_frame:
+        x = x.squeeze(2).unflatten(0, (3, 2)).transpose(1, 2)
+    torch.testing.assert_close(x.float(), expected, atol=0 if not bf16 else 4e-3, rtol=0 if not bf16 else 4e-3)
+
+
+def textbook(net: ActorCritic, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Logits and values through Table 1's Conv3D stack itself (nn.Conv3d on whole observations, depth padding
+    and all: `VelocityMapEncoder.encode`)."""
+    x = prepare(obs, net.obs_norm)
+    h = net.features.encode(x)
+    critic_h = h if net.critic_features is None else net.critic_features.encode(x)
+    return net.actor(h), net.critic(critic_h).squeeze(-1)
 
 
 @pytest.mark.parametrize("shared", [True, False])
-def test_the_first_layer_on_each_frame_once_gives_the_whole_observations_forward(shared: bool) -> None:
-    # Frames of a stack that shifts by one per decision, given once each with where every observation's are.
+def test_distinct_frames_through_the_first_two_layers_once_give_the_conv3d_stacks_outputs_and_gradients(
+        shared: bool) -> None:
+    # Frames of stacks that shift by one per decision, given once each with where every observation's are (a
+    # stack that began anew repeats its first frame); 5 frames, so the second layer's depths inside the stack and
+    # at both of its padded ends are all there.
     torch.manual_seed(0)
-    net = ActorCritic((3, 4, 8, 16), feature_dim=32, head_hidden=16, shared_encoder=shared, obs_norm=True)
-    net.obs_norm.update(torch.rand(5, 4, 8, 16))
-    frames = torch.rand(6, 4, 8, 16)
-    index = torch.tensor([[0, 1, 2], [1, 2, 3], [2, 3, 4], [0, 0, 5]])
+    net = ActorCritic((5, 4, 16, 32), feature_dim=32, head_hidden=16, shared_encoder=shared, obs_norm=True)
+    net.obs_norm.update(torch.rand(5, 4, 16, 32))
+    frames = torch.rand(8, 4, 16, 32)
+    index = torch.tensor([[0, 1, 2, 3, 4], [1, 2, 3, 4, 5], [2, 3, 4, 5, 6], [7, 7, 7, 7, 0]])
     whole = frames[index]  # (4, F, C, H, W)
-    with torch.no_grad():
-        expected = net(whole)
-        got = net.forward_frames(frames, index)
-        first = net.frame_features(frames)[0]  # (K, 1, h1, w1, c1)
-        convolved = [net.features.encode(prepare(whole, net.obs_norm)),
-                     net.features.encode_stacks(first[index.flatten()].reshape(4, 3, *first.shape[2:]))]
-    for a, b in zip(got, expected, strict=True):
-        torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-5)
-    torch.testing.assert_close(convolved[1], convolved[0], atol=1e-6, rtol=1e-5)  # the SB3 extractor's path
+    grads = []
+    for path in (lambda: net.forward_frames(frames, index), lambda: net(whole), lambda: textbook(net, whole)):
+        net.zero_grad()
+        logits, values = path()
+        (logits.logsumexp(-1).sum() + logits[:, 1].sum() + values.square().sum()).backward()
+        grads.append(((logits.detach(), values.detach()), {n: p.grad.clone() for n, p in net.named_parameters()}))
+    (outputs, expected), reference = grads[0], grads[2]
+    for got in (outputs, grads[1][0]):
+        for a, b in zip(got, reference[0], strict=True):
+            torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-5)
+    for name, g in reference[1].items():
+        assert g.abs().sum() > 0, name
+        torch.testing.assert_close(expected[name], g, atol=1e-6, rtol=1e-4, msg=name)
 
 
 def test_gradient_reaches_every_parameter() -> None:
@@ -145,8 +162,7 @@ def test_obs_norm_standardises_the_first_convs_input_with_a_floor_and_a_clip(bf1
     raw = torch.randint(0, 256, (3, 2, 2, 8, 16), dtype=torch.uint8)
     with torch.no_grad():
         net(raw)  # no statistics yet: scaled to [0, 1] only
-        torch.testing.assert_close(stacked(seen[-1], 3).float(), raw.permute(0, 2, 1, 3, 4).float() / 255, atol=4e-3,
-                                   rtol=4e-3)
+        torch.testing.assert_close(seen[-1].float(), raw.permute(0, 2, 1, 3, 4).float() / 255, atol=4e-3, rtol=4e-3)
         # Channel 0 varies, channel 1 is constant (std 0, so the floor of 0.01 applies).
         frames = torch.stack([torch.tensor([[0.0] * 16] * 8), torch.full((8, 16), 0.5)]).expand(4, 2, 8, 16).clone()
         frames[:2, 0] = 1.0  # mean 0.5, std 0.5
@@ -158,7 +174,7 @@ def test_obs_norm_standardises_the_first_convs_input_with_a_floor_and_a_clip(bf1
         given = x.clone()
         net(x)
     assert torch.equal(x, given)  # standardised in a copy, never in the caller's tensor
-    got = stacked(seen[-1], 1).float()  # (B, C, F, H, W)
+    got = seen[-1].float()  # (B, C, F, H, W)
     tol = {"atol": 0.04, "rtol": 0.01} if bf16 else {"atol": 1e-5, "rtol": 0}
     torch.testing.assert_close(got[0, 0], torch.ones(2, 8, 16), **tol)
     assert got[0, 1, 0, 0, 0] == 5.0 and abs(float(got[0, 1, 1, 0, 0]) + 1.0) < tol["atol"] + 1e-2

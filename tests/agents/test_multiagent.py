@@ -415,7 +415,7 @@ def test_frames_shared_by_samples_go_through_the_first_layer_once_without_a_chan
         algo: str, monkeypatch) -> None:
     tc = small_tc(algo=algo, ppo_minibatches=2, ppo_epochs=2, obs_norm=True)
     b = stacked_batch()
-    seen: list[int] = []  # frames through the first layer
+    seen: list[int] = []  # frames through the first two layers
     monkeypatch.setattr("agents.model.VelocityMapEncoder.frame_features",
                         lambda self, x, original=VelocityMapEncoder.frame_features: seen.append(len(x))
                         or original(self, x))
