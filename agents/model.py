@@ -385,8 +385,9 @@ def bf16_gradient_error(obs_shape: tuple[int, ...], n_actions: int, feature_dim:
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(0)
         net = ActorCritic(obs_shape, n_actions, feature_dim=feature_dim, head_hidden=head_hidden).to(device)
-        # Each kernel as training runs it, with the module whose weight (and bias) it trains: the second Conv3D runs as
-        # its depth taps (a Conv2D, `VelocityMapEncoder.taps`), on the first layer's output of single frames.
+        # Each convolution and linear kernel as training runs it, with the module whose weight (and bias) it trains:
+        # the second Conv3D runs as its depth taps (a Conv2D, `VelocityMapEncoder.taps`), on the first layer's output
+        # of single frames; the taps' sums and its bias (`encode_frames`) are plain sums, not checked.
         kernels: dict[str, tuple[Any, nn.Module]] = {
             name: (m, m) for name, m in net.named_modules()
             if isinstance(m, nn.Conv3d | nn.Linear) and not name.endswith("conv.2")}

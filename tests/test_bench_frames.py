@@ -1,4 +1,4 @@
-"""scripts/bench_frames.py: the network with each frame through its first layer once, timed against it whole."""
+"""scripts/bench_frames.py: the network with each frame through its first two layers once, timed against it whole."""
 
 from __future__ import annotations
 

@@ -81,11 +81,16 @@ def test_segments_continue_each_run_and_bootstrap_the_agents_that_go_on() -> Non
         pool.close()
 
 
+def demand_train_args(run: Path, eval_every: int = 2) -> list[str]:
+    """`cosim train` under demand on the short runs of SHORT, validated on 2 runs every `eval_every` (0: never)."""
+    return ["train", "--config", "configs/demand.yaml", *(f"--set={k}={'null' if v is None else v}"
+                                                          for k, v in SHORT.items()),
+            f"--set=train.eval_every={eval_every}", "--set=train.eval_episodes=2", "--workers", "2", "--out", str(run)]
+
+
 def test_cosim_train_under_demand_trains_runs_validates_resumes_and_evaluates(tmp_path: Path) -> None:
     run = tmp_path / "run"
-    args = ["train", "--config", "configs/demand.yaml", *(f"--set={k}={'null' if v is None else v}"
-                                                          for k, v in SHORT.items()),
-            "--set=train.eval_every=2", "--set=train.eval_episodes=2", "--workers", "2", "--out", str(run)]
+    args = demand_train_args(run)
     assert main([*args, "--episodes", "2"]) == 0
     with (run / "episodes.csv").open() as f:
         rows = list(csv.DictReader(f))
@@ -111,6 +116,12 @@ def test_cosim_train_under_demand_trains_runs_validates_resumes_and_evaluates(tm
                  *(f"--set={k}={v}" for k, v in SHORT.items() if k.startswith("demand")),
                  "--set", "demand.seeds=1", "--out", str(out)]) == 0
     assert (out / "summary.json").is_file()
+
+
+@pytest.mark.slow  # 87 s beside two training runs: a short training run, then the headline's six demand runs
+def test_the_demand_headline_weighs_a_trained_run_against_all_human_traffic_and_scripted(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    assert main([*demand_train_args(run, eval_every=0), "--episodes", "2"]) == 0
     # The headline: the run against all-human traffic and `scripted` at a penetration and a demand level.
     headline = tmp_path / "headline"
     done = subprocess.run([sys.executable, "scripts/demand_headline.py", str(run), "--levels", "near capacity",

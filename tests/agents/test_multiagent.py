@@ -411,7 +411,7 @@ def test_a_sample_continues_the_one_before_it_where_its_stack_is_that_one_shifte
 
 
 @pytest.mark.parametrize("algo", ["a2c", "ppo"])
-def test_frames_shared_by_samples_go_through_the_first_layer_once_without_a_change_to_the_update(
+def test_frames_shared_by_samples_go_through_the_first_two_layers_once_without_a_change_to_the_update(
         algo: str, monkeypatch) -> None:
     tc = small_tc(algo=algo, ppo_minibatches=2, ppo_epochs=2, obs_norm=True)
     b = stacked_batch()
@@ -432,7 +432,7 @@ def test_frames_shared_by_samples_go_through_the_first_layer_once_without_a_chan
         assert shared_stats[k] == pytest.approx(v, rel=1e-4, abs=1e-6), k
 
 
-def test_acting_with_the_first_layers_memory_is_acting_without_it() -> None:
+def test_acting_with_the_frame_memory_is_acting_without_it() -> None:
     tc = small_tc(shared_policy=False, obs_norm=True)
     torch.manual_seed(0)
     policy = MultiAgentPolicy(3, (3, 4, 8, 16), 5, tc)
