@@ -118,7 +118,7 @@ def test_cosim_train_under_demand_trains_runs_validates_resumes_and_evaluates(tm
     assert (out / "summary.json").is_file()
 
 
-@pytest.mark.slow  # 87 s beside two training runs: a short training run, then the headline's six demand runs
+@pytest.mark.slow  # 20 s in CI: a short training run, then the headline's six demand runs
 def test_the_demand_headline_weighs_a_trained_run_against_all_human_traffic_and_scripted(tmp_path: Path) -> None:
     run = tmp_path / "run"
     assert main([*demand_train_args(run, eval_every=0), "--episodes", "2"]) == 0
