@@ -346,7 +346,7 @@ class FrameMemory:
         with self.net._precision(obs):
             features = self.net.frame_features(frames)
             rows = len(self.newest) * f
-            self.rings = tuple(self._grown(self.rings[k] if self.rings else x.new_zeros((0, *x.shape[1:])), rows)
+            self.rings = tuple(_padded(self.rings[k] if self.rings else x.new_zeros((0, *x.shape[1:])), rows)
                                for k, x in enumerate(features))
             for ring, x in zip(self.rings, features, strict=True):
                 ring.index_copy_(0, at, x)
@@ -356,15 +356,12 @@ class FrameMemory:
 
     def _grow(self, slots: int, device: torch.device) -> None:
         """Room for `slots` slots (one acted on for the first time has no frames to reuse)."""
-        if len(self.newest) < slots:
-            self.newest = torch.cat([self.newest.to(device),
-                                     torch.zeros(slots - len(self.newest), dtype=torch.long, device=device)])
+        self.newest = _padded(self.newest.to(device), slots)
 
-    @staticmethod
-    def _grown(ring: torch.Tensor, rows: int) -> torch.Tensor:
-        if ring.shape[0] < rows:
-            ring = torch.cat([ring, ring.new_zeros((rows - ring.shape[0], *ring.shape[1:]))])
-        return ring
+
+def _padded(x: torch.Tensor, rows: int) -> torch.Tensor:
+    """`x` with zero rows appended up to `rows` rows (itself where it has them)."""
+    return x if x.shape[0] >= rows else torch.cat([x, x.new_zeros((rows - x.shape[0], *x.shape[1:]))])
 
 
 # Relative L2 error of one layer's bfloat16 gradient against float32's beyond which it is wrong, not rounded:

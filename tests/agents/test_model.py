@@ -66,15 +66,6 @@ def test_the_first_conv_gets_its_input_channels_last_in_the_forward_dtype(bf16: 
     torch.testing.assert_close(x.float(), expected, atol=0 if not bf16 else 4e-3, rtol=0 if not bf16 else 4e-3)
 
 
-def textbook(net: ActorCritic, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Logits and values through Table 1's Conv3D stack itself (nn.Conv3d on whole observations, depth padding
-    and all: `VelocityMapEncoder.encode`)."""
-    x = prepare(obs, net.obs_norm)
-    h = net.features.encode(x)
-    critic_h = h if net.critic_features is None else net.critic_features.encode(x)
-    return net.actor(h), net.critic(critic_h).squeeze(-1)
-
-
 @pytest.mark.parametrize("shared", [True, False])
 def test_distinct_frames_through_the_first_two_layers_once_give_the_conv3d_stacks_outputs_and_gradients(
         shared: bool) -> None:
@@ -88,15 +79,14 @@ def test_distinct_frames_through_the_first_two_layers_once_give_the_conv3d_stack
     index = torch.tensor([[0, 1, 2, 3, 4], [1, 2, 3, 4, 5], [2, 3, 4, 5, 6], [7, 7, 7, 7, 0]])
     whole = frames[index]  # (4, F, C, H, W)
     grads = []
-    for path in (lambda: net.forward_frames(frames, index), lambda: net(whole), lambda: textbook(net, whole)):
+    for path in (lambda: net.forward_frames(frames, index), lambda: net(whole)):
         net.zero_grad()
         logits, values = path()
         (logits.logsumexp(-1).sum() + logits[:, 1].sum() + values.square().sum()).backward()
         grads.append(((logits.detach(), values.detach()), {n: p.grad.clone() for n, p in net.named_parameters()}))
-    (outputs, expected), reference = grads[0], grads[2]
-    for got in (outputs, grads[1][0]):
-        for a, b in zip(got, reference[0], strict=True):
-            torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-5)
+    (outputs, expected), reference = grads  # `forward` is Table 1's Conv3D stack on the whole observations
+    for a, b in zip(outputs, reference[0], strict=True):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-5)
     for name, g in reference[1].items():
         assert g.abs().sum() > 0, name
         torch.testing.assert_close(expected[name], g, atol=1e-6, rtol=1e-4, msg=name)
