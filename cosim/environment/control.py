@@ -40,6 +40,8 @@ class Action(IntEnum):
 N_ACTIONS = len(Action)
 _LANE_DELTA = np.array([1, 0, -1, 0, 0])  # SUMO lane indices grow to the left
 _SPEED_DELTA = np.array([0, 0, 0, 1, -1])
+_CHANGES = np.array([Action.LANE_LEFT, Action.LANE_RIGHT])
+_IDLE_ONLY = np.eye(N_ACTIONS, dtype=np.int8)[Action.IDLE]  # the mask of an agent not on the road
 
 
 @dataclass(frozen=True)
@@ -58,24 +60,24 @@ def decide(actions: np.ndarray, lanes: np.ndarray, usable: np.ndarray, speed_tar
         raise ValueError(f"actions must be in 0..{N_ACTIONS - 1}, got {actions.tolist()}")
     target = np.clip(speed_targets + _SPEED_DELTA[actions] * av.speed_step, 0.0, av.max_speed)
     wanted = _LANE_DELTA[actions]
-    ok = _lane_ok(wanted, lanes, usable)
+    ok = _lane_ok(wanted[:, None], lanes, usable)[:, 0]
     change = np.where(ok, wanted, 0)
     return Decision(target_speed=target, lane_change=change, invalid=(wanted != 0) & ~ok)
 
 
 def _lane_ok(wanted: np.ndarray, lanes: np.ndarray, usable: np.ndarray) -> np.ndarray:
-    """(N,) bool: lane `lanes + wanted` exists on each AV's edge and may be used (usable: (N, L) bool)."""
-    dest = lanes + wanted
+    """(N, K) bool: lane `lanes + wanted` exists on each AV's edge and may be used; wanted (N, K) or (K,) lane
+    changes, lanes (N,), usable (N, L) bool."""
+    dest = np.asarray(lanes)[:, None] + wanted
     inside = (dest >= 0) & (dest < usable.shape[1])
-    return inside & usable[np.arange(len(dest)), np.where(inside, dest, 0)]
+    return inside & usable[np.arange(len(dest))[:, None], np.where(inside, dest, 0)]
 
 
 def action_mask(lanes: np.ndarray, usable: np.ndarray, speed_targets: np.ndarray, av: AVConfig) -> np.ndarray:
     """(N, N_ACTIONS) int8, 1 where the action would change something (module doc); the arguments as `decide`'s."""
-    n = len(lanes)
-    mask = np.ones((n, N_ACTIONS), dtype=np.int8)
-    for a in (Action.LANE_LEFT, Action.LANE_RIGHT):
-        mask[:, a] = _lane_ok(np.full(n, _LANE_DELTA[a]), lanes, usable)
+    mask = np.empty((len(lanes), N_ACTIONS), dtype=np.int8)
+    mask[:, _CHANGES] = _lane_ok(_LANE_DELTA[_CHANGES], lanes, usable)  # both lane changes in one pass
+    mask[:, Action.IDLE] = 1
     mask[:, Action.ACCELERATE] = speed_targets < av.max_speed
     mask[:, Action.DECELERATE] = speed_targets > 0.0
     return mask
@@ -137,5 +139,5 @@ def agent_masks(snap: Snapshot, zone: MergeZone, agents: Sequence[str], targets:
     edge = np.where(present, snap.edge[safe] if len(snap) else -1, -1)
     lane = np.where(present, snap.lane[safe] if len(snap) else 0, 0)
     mask = action_mask(lane, zone.through[edge], np.asarray(targets, dtype=np.float64), av)
-    mask[~present] = np.eye(N_ACTIONS, dtype=np.int8)[Action.IDLE]
+    mask[~present] = _IDLE_ONLY
     return dict(zip(agents, mask, strict=True))

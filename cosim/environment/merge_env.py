@@ -32,7 +32,7 @@ import numpy as np
 from cosim.config import Config
 from cosim.environment.base import Step, SumoEnv
 from cosim.environment.episode import EndCheck, episode_end, merge_status
-from cosim.environment.reward import StepChange, av_gaps, svo_rewards, utility_terms, weighted_utility
+from cosim.environment.reward import TERMS, StepChange, av_gaps, svo_rewards, utility_terms, weighted_utility
 from cosim.environment.tracker import EpisodeTracker
 from cosim.environment.velocity_map import VelocityMapper, rasterize_road
 from cosim.errors import SimulationError
@@ -127,10 +127,12 @@ class MergeEnv(SumoEnv):
             changed_v[self._index[a]], invalid_v[self._index[a]] = lane_changed[a], invalid[a]
         reward, terms, ego_u, social_u = self._utilities(prev, snap, self._rows, changed_v, invalid_v,
                                                          self._status.row, self._merged_now)
-        extra = {a: {"reward_terms": {k: float(v[i]) for k, v in terms.items()}, "ego_utility": float(ego_u[i]),
-                     "social_utility": float(social_u[i]), "invalid_action": bool(invalid_v[i])}
+        # One conversion to Python floats each, not one per agent and term.
+        by_agent, reward_l, ego_l, social_l = terms.T.tolist(), reward.tolist(), ego_u.tolist(), social_u.tolist()
+        extra = {a: {"reward_terms": dict(zip(TERMS, by_agent[i], strict=True)), "ego_utility": ego_l[i],
+                     "social_utility": social_l[i], "invalid_action": bool(invalid_v[i])}
                  for a, i in ((a, self._index[a]) for a in acting)}
-        return {a: float(reward[self._index[a]]) for a in acting}, extra
+        return {a: reward_l[self._index[a]] for a in acting}, extra
 
     def _end(self, snap: Snapshot, acting: list[str], rewards: dict[str, float], extra: dict[str, dict]) -> Step:
         status, merged = self._status, self.tracker.merged_at is not None
@@ -160,7 +162,9 @@ class MergeEnv(SumoEnv):
 
     def _utilities(self, prev: Snapshot, snap: Snapshot, rows: np.ndarray, lane_changed: np.ndarray,
                  invalid: np.ndarray, merger_row: int, merged_now: bool
-                 ) -> tuple[np.ndarray, dict, np.ndarray, np.ndarray]:
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(reward, terms, ego utility, social utility): each (N,) but terms, (len(TERMS), N) the weighted terms
+        of each agent, 0 for an agent not on the road."""
         period = self.cfg.sim.decision_period
         # Progress and speed change since the previous snapshot; a vehicle inserted since starts at 0 m.
         before = prev.rows_of(snap.ids)
@@ -181,9 +185,8 @@ class MergeEnv(SumoEnv):
         observed = self.mapper.observed(snap, rows)
         reward, ego, social = svo_rewards(utility, observed, rows, merger_row, self._phis,
                                           mean=self.cfg.reward.social == "mean")
-        safe = np.maximum(rows, 0)
-        terms = {k: np.where(present, v[safe], 0.0) if len(snap) else np.zeros(len(rows))
-                 for k, v in weighted.items()}
+        terms = (np.where(present, np.array(list(weighted.values()))[:, np.maximum(rows, 0)], 0.0) if len(snap)
+                 else np.zeros((len(TERMS), len(rows))))
         return reward, terms, ego, social
 
     # -- summaries and rendering --------------------------------------------------------------------

@@ -138,6 +138,9 @@ class VelocityMapper:
         # far fewer than the pixels of the vehicle channels (see scripts/bench_velocity_map.py).
         self._written: list[np.ndarray] = [np.zeros(0, dtype=np.intp)] * f
         self._basis_cache: dict[tuple[int, int], np.ndarray] = {}
+        # The last (snapshot, ego rows, u, lat) of `_ego_frame`: the reward's `observed` asks again for the frames
+        # the step's `update` has just made.
+        self._frame: tuple[Snapshot, np.ndarray, np.ndarray, np.ndarray] | None = None
         if self._road_ch >= 0:
             self._init_road(road)
 
@@ -175,6 +178,7 @@ class VelocityMapper:
         self._buf.fill(0)
         self._written = [np.zeros(0, dtype=np.intp)] * self.shape[0]
         self._t = self.shape[0] - 1
+        self._frame = None
 
     def clear(self, agent: int) -> None:
         """Zero one agent's stack (its slot taken over by another agent)."""
@@ -225,16 +229,22 @@ class VelocityMapper:
 
     def _ego_frame(self, snap: Snapshot, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, V) position of every vehicle centre in every agent's frame [m]: along the heading, to the left.
-        Absent agents (row -1) get the frame of row 0; callers mask them out."""
+        Absent agents (row -1) get the frame of row 0; callers mask them out. The last result is kept for the same
+        snapshot and rows (`_frame`): callers read the arrays and never write into them."""
         if len(snap) == 0:
             empty = np.zeros((len(rows), 0))
             return empty, empty
+        last = self._frame
+        if last is not None and last[0] is snap and np.array_equal(last[1], rows):
+            return last[2], last[3]
         r = np.maximum(rows, 0)
         th = snap.heading[r][:, None]
         cos, sin = np.cos(th), np.sin(th)
         dx = snap.x[None, :] - snap.x[r][:, None]
         dy = snap.y[None, :] - snap.y[r][:, None]
-        return dx * cos + dy * sin, -dx * sin + dy * cos
+        u, lat = dx * cos + dy * sin, -dx * sin + dy * cos
+        self._frame = (snap, rows.copy(), u, lat)
+        return u, lat
 
     def _render_road(self, snap: Snapshot, rows: np.ndarray, present: np.ndarray, t: int) -> None:
         """Sample the raster at every pixel centre of every agent into slots t and t + F."""

@@ -161,6 +161,21 @@ def test_observed_excludes_ego_and_absent_agents() -> None:
     np.testing.assert_array_equal(seen[2], [True, True, False, True])  # the AV behind sees everyone
 
 
+def test_observed_after_an_update_answers_for_the_rows_asked_not_the_rows_drawn() -> None:
+    # The env asks `observed` right after `update` on the same snapshot: the frames made there are reused, and
+    # only for those rows.
+    snap = scene()
+    m = mapper(n_agents=3)
+    m.update(snap, np.array([0, -1, 2]))
+    np.testing.assert_array_equal(m.observed(snap, np.array([0, -1, 2])),
+                                  mapper(n_agents=3).observed(snap, np.array([0, -1, 2])))
+    np.testing.assert_array_equal(m.observed(snap, np.array([2, 0, -1])),
+                                  mapper(n_agents=3).observed(snap, np.array([2, 0, -1])))
+    moved = scene(hv_x=200.0)  # the HV out of every window
+    m.update(moved, np.array([0, -1, 2]))
+    assert not m.observed(moved, np.array([0, -1, 2]))[:, 1].any()
+
+
 def test_other_agents_see_each_other_in_avs() -> None:
     m = mapper(n_agents=2)
     m.update(scene(), np.array([0, 2]))
