@@ -7,3 +7,7 @@
 #   (cd <side> && PYTHONPATH=<side> python -m cosim.cli bench --episodes 100)
 # ab_method.txt: 36161fc's own cosim bench (the env's episodes, then the bare loops one after the other) alternated
 # with this commit's (each episode replayed by the bare loops at once), three times, the same command.
+#
+# share_R.json: the learner's share of the machine's limit at this commit, 11:50-12:00 UTC, quiet, R = 1..4 one
+# after the other:
+#   python scripts/bench_train.py --workers 12 --algo ppo a2c --seconds 40 --no-network --json share_R.json
