@@ -34,7 +34,7 @@ from cosim.config import Config
 from cosim.environment.base import Step, SumoEnv
 from cosim.environment.flow_metrics import window_metrics
 from cosim.environment.flow_record import FlowRecorder
-from cosim.environment.reward import StepChange, av_gaps, svo_rewards, utility_terms, weighted_utility
+from cosim.environment.reward import step_utility, svo_rewards
 from cosim.environment.velocity_map import VelocityMapper, rasterize_road
 from cosim.errors import ConfigError
 from cosim.files import atomic_path
@@ -153,20 +153,12 @@ class DemandEnv(SumoEnv):
 
     def _reward(self, prev: Snapshot, snap: Snapshot, acting: list[str], lane_changed: dict[str, bool],
                 invalid: dict[str, bool]) -> tuple[dict[str, float], dict[str, dict]]:
-        before = prev.rows_of(snap.ids)
-        seen = before >= 0
-        prev_d, prev_v = np.zeros(len(snap)), snap.speed.copy()
-        prev_d[seen], prev_v[seen] = prev.distance[before[seen]], prev.speed[before[seen]]
         v_lane, v_invalid = np.zeros(len(snap), bool), np.zeros(len(snap), bool)
         for a in acting:
             r = snap.row_of(a)
             if r >= 0:
                 v_lane[r], v_invalid[r] = lane_changed[a], invalid[a]
-        av = self.cfg.av
-        raw = utility_terms(StepChange(snap.distance - prev_d, snap.speed - prev_v, v_lane, v_invalid, snap.crashed,
-                                       self._merged_now, av.max_speed, av.accel, self.cfg.sim.decision_period,
-                                       snap.speed, av_gaps(snap, self.cfg.reward.weights)))
-        utility = sum(weighted_utility(raw, self.cfg.reward).values())
+        utility = sum(step_utility(prev, snap, v_lane, v_invalid, self._merged_now, self.cfg).values())
         rows = snap.rows_of(acting)
         observed = np.zeros((len(acting), len(snap)), bool)
         slots = np.array([self.slot.get(a, -1) for a in acting], dtype=np.int64)

@@ -32,7 +32,7 @@ import numpy as np
 from cosim.config import Config
 from cosim.environment.base import Step, SumoEnv
 from cosim.environment.episode import EndCheck, episode_end, merge_status
-from cosim.environment.reward import TERMS, StepChange, av_gaps, svo_rewards, utility_terms, weighted_utility
+from cosim.environment.reward import TERMS, step_utility, svo_rewards
 from cosim.environment.tracker import EpisodeTracker
 from cosim.environment.velocity_map import VelocityMapper, rasterize_road
 from cosim.errors import SimulationError
@@ -165,22 +165,13 @@ class MergeEnv(SumoEnv):
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(reward, terms, ego utility, social utility): each (N,) but terms, (len(TERMS), N) the weighted terms
         of each agent, 0 for an agent not on the road."""
-        period = self.cfg.sim.decision_period
-        # Progress and speed change since the previous snapshot; a vehicle inserted since starts at 0 m.
-        before = prev.rows_of(snap.ids)
-        seen = before >= 0
-        prev_d, prev_v = np.zeros(len(snap)), snap.speed.copy()
-        prev_d[seen], prev_v[seen] = prev.distance[before[seen]], prev.speed[before[seen]]
         v_lane, v_invalid, v_merged = (np.zeros(len(snap), dtype=bool) for _ in range(3))
         present = rows >= 0
         v_lane[rows[present]] = lane_changed[present]
         v_invalid[rows[present]] = invalid[present]
         if merged_now:
             v_merged[merger_row] = True
-        raw = utility_terms(StepChange(snap.distance - prev_d, snap.speed - prev_v, v_lane, v_invalid, snap.crashed,
-                                       v_merged, self.cfg.av.max_speed, self.cfg.av.accel, period, snap.speed,
-                                       av_gaps(snap, self.cfg.reward.weights)))
-        weighted = weighted_utility(raw, self.cfg.reward)
+        weighted = step_utility(prev, snap, v_lane, v_invalid, v_merged, self.cfg)
         utility = sum(weighted.values())
         observed = self.mapper.observed(snap, rows)
         reward, ego, social = svo_rewards(utility, observed, rows, merger_row, self._phis,

@@ -14,7 +14,8 @@ Contract:
   merging vehicle on the step it merges), `headway` (min(0, ln(gap / (HEADWAY_TIME x speed))), AVs only: MARL_CAVs'
   headway cost; weight 0 unless set, the paper's reward has none; `configs/default.yaml` sets 1).
 - `av_gaps(snap, weights)` gives a step's AV gaps for `headway`; `utility_terms(step)` evaluates every term;
-  `weighted_utility(terms, cfg)` weighs them by `cfg.weights`.
+  `weighted_utility(terms, cfg)` weighs them by `cfg.weights`; `step_utility(prev, snap, ...)` does all three for
+  one decision step of an env, the same for every scenario.
 - `svo_rewards(u, observed, ego_rows, merger_row, phis, mean=False)` is the paper's Eq. (3):
   R_i = cos(phi_i) u_i + sin(phi_i) (sum of u over the others i observes + u_M), where, as in the paper's
   sum over k in V~ ∪ {M}, the merging vehicle counts whether observed or not; `mean` (`reward.social: mean`)
@@ -28,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cosim.config import RewardConfig, RewardWeights
+from cosim.config import Config, RewardConfig, RewardWeights
 from cosim.sumo.snapshot import KIND_AV, Snapshot
 
 
@@ -129,6 +130,21 @@ def utility_terms(step: StepChange) -> dict[str, np.ndarray]:
 def weighted_utility(terms: dict[str, np.ndarray], cfg: RewardConfig) -> dict[str, np.ndarray]:
     """Each term times its weight (`cfg.weights.<name>`); the utility is the sum of the returned arrays."""
     return {name: getattr(cfg.weights, name) * terms[name] for name in TERMS}
+
+
+def step_utility(prev: Snapshot, snap: Snapshot, lane_changed: np.ndarray, invalid: np.ndarray,
+                 merged_now: np.ndarray, cfg: Config) -> dict[str, np.ndarray]:
+    """Each term's weighted value (V,) over `snap`'s vehicles for the decision step from `prev` to `snap`;
+    `lane_changed`, `invalid` and `merged_now` are (V,) bool over `snap`'s rows. A vehicle inserted since `prev`
+    starts at 0 m and its own speed, so its first step counts what it drove since insertion."""
+    before = prev.rows_of(snap.ids)
+    seen = before >= 0
+    prev_d, prev_v = np.zeros(len(snap)), snap.speed.copy()
+    prev_d[seen], prev_v[seen] = prev.distance[before[seen]], prev.speed[before[seen]]
+    step = StepChange(snap.distance - prev_d, snap.speed - prev_v, lane_changed, invalid, snap.crashed, merged_now,
+                      cfg.av.max_speed, cfg.av.accel, cfg.sim.decision_period, snap.speed,
+                      av_gaps(snap, cfg.reward.weights))
+    return weighted_utility(utility_terms(step), cfg.reward)
 
 
 def svo_rewards(utility: np.ndarray, observed: np.ndarray, ego_rows: np.ndarray, merger_row: int,
