@@ -13,6 +13,7 @@ from cosim.environment.reward import (
     TERMS,
     StepChange,
     av_gaps,
+    step_utility,
     svo_rewards,
     term,
     utility_terms,
@@ -122,6 +123,23 @@ def test_utility_terms_and_weights() -> None:
     assert terms["headway"].tolist() == [0.0, 0.0, 0.0]  # no gaps given: a step of the paper's reward
     assert weighted["speed"].tolist() == [2.0, 1.0, 0.0]
     assert weighted["collision"].tolist() == [0.0, 0.0, -RewardWeights().collision]
+
+
+def test_a_steps_utility_counts_each_vehicle_from_its_own_previous_row_and_a_newcomer_from_insertion() -> None:
+    cfg = load_config("configs/default.yaml", {"reward.weights.headway": 0.0, "av.max_speed": 30.0})
+    period, vmax, accel = cfg.sim.decision_period, cfg.av.max_speed, cfg.av.accel
+    prev = Snapshot.build(ids=["hv_0", "av_0", "gone"], kind=[KIND_HV, KIND_AV, KIND_HV],
+                          distance=[50.0, 100.0, 10.0], speed=[20.0, 10.0, 5.0])
+    # Rows reordered, "gone" left, "new" inserted during the step (4 m driven since, at 8 m/s).
+    snap = Snapshot.build(ids=["new", "av_0", "hv_0"], kind=[KIND_HV, KIND_AV, KIND_HV],
+                          distance=[4.0, 100.0 + vmax * period / 2, 70.0], speed=[8.0, 10.0 + accel * period, 20.0])
+    u = step_utility(prev, snap, lane_changed=np.array([False, True, False]), invalid=np.zeros(3, bool),
+                     merged_now=np.zeros(3, bool), cfg=cfg)
+    w = cfg.reward.weights
+    assert u["speed"] == pytest.approx(w.speed * np.array([4.0, vmax * period / 2, 20.0]) / (vmax * period))
+    assert u["accel"] == pytest.approx([0.0, -w.accel, 0.0])  # the newcomer's speed change counts from its own
+    assert u["lane_change"].tolist() == [0.0, -w.lane_change, 0.0]
+    assert u["headway"].tolist() == [0.0] * 3
 
 
 def test_headway_costs_an_av_closer_than_1_2_s_to_its_leader_on_its_lane() -> None:
