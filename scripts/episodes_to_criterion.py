@@ -3,15 +3,19 @@ of `agents.validation.meets_criterion` held, with its episodes and wall time.
 
     python scripts/episodes_to_criterion.py runs/learner/* --out results/learner
 
-The merge reference of altruistic runs is the `courteous` rule's merge success on the same validation seeds,
-evaluated once into `OUT/courteous_validation/` (resumable). Writes `OUT/criterion.md`, `OUT/criterion.json` and
-`OUT/learning_curves.png`: training and validation curves, one line per SVO angle and setting (mean over its seeds,
-with a band across them), a star where each run first met the criterion.
+The merge reference of altruistic runs is the `courteous` rule's merge success on the same validation seeds in the
+run's own setting (net, scenario, drivers, AVs, safety layer: a run under `av.shield: sumo` is held to the rule under
+it), evaluated once per setting into `OUT/courteous_validation_<hash of the setting>/` (resumable). Writes
+`OUT/criterion.md`, `OUT/criterion.json` and `OUT/learning_curves.png`: training and validation curves, one line
+per SVO angle and setting (mean over its seeds, with a band across them), a star where each run first met the
+criterion.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
 import logging
 import math
 import shlex
@@ -43,28 +47,40 @@ def main() -> None:
     if not runs:
         raise CosimError(f"no run among {[str(r) for r in args.runs]} has a {VALIDATION_LOG} (train.eval_every)")
     first = load_config(runs[0] / "config.yaml")
-    reference = evaluate(first, Baseline("courteous"), args.out / "courteous_validation",
-                         episodes=first.train.eval_episodes, seed=VALIDATION_SEED_START, workers=args.workers,
-                         trajectories=0, plots=False)["metrics"]["merge success [%]"]["mean"]
+    references: dict[str, float] = {}
+
+    def reference_of(cfg: Config) -> float:
+        key = _setting(cfg)
+        if key not in references:
+            # Named by the setting, so a later call with its runs in another order resumes the same evaluations.
+            folder = f"courteous_validation_{hashlib.sha256(key.encode()).hexdigest()[:8]}"
+            references[key] = evaluate(cfg, Baseline("courteous"), args.out / folder,
+                                       episodes=cfg.train.eval_episodes, seed=VALIDATION_SEED_START,
+                                       workers=args.workers, trajectories=0, plots=False
+                                       )["metrics"]["merge success [%]"]["mean"]
+        return references[key]
+
     default = load_config(DEFAULT_CONFIG)
     rows = []
     for run in runs:
         cfg = load_config(run / "config.yaml")
         phi = float(cfg.reward.phi)
+        reference = reference_of(cfg)
         validations = [{k: cell_float(v) for k, v in r.items()} for r in read_csv(run / VALIDATION_LOG)]
         met = next((v for v in validations if meets_criterion(v, phi, reference)), None)
         last = validations[-1] if validations else {}
         rows.append({"run": str(run), "phi": phi, "seed": cfg.train.seed, "first_seed": first_seed(run),
                      "validations": len(validations),
                      "differs": _differs(cfg, default), "curve": [(v["episodes"], v["crash"]) for v in validations],
-                     "last_validated": last.get("episodes", 0), "met_at_episodes": met and met["episodes"],
+                     "last_validated": last.get("episodes", 0), "merge_reference": reference,
+                     "met_at_episodes": met and met["episodes"],
                      "met_at_train_s": met and met["train_s"], "best_crash": min((v["crash"] for v in validations),
                                                                                 default=math.nan)})
     lines = ["# Episodes to the criterion", "",
              f"`{shlex.join(['python', *sys.argv])}`", "",
              f"Criterion: validation crash <= {CRASH_MAX:g}% with its upper bound <= {CRASH_HIGH_MAX:g}%; at phi > 0 "
-             f"also merge success >= courteous's on the validation seeds ({reference:.1f}%) - {MERGE_GAP:g} "
-             "points.", "",
+             f"also merge success >= courteous's on the validation seeds in the run's setting "
+             f"({_references(rows)}) - {MERGE_GAP:g} points.", "",
              "| run | phi | seed | differs from configs/default.yaml | validation crash [%] at [episodes] | "
              "criterion met at [episodes] | [h of training] |",
              "|---|---|---|---|---|---|---|"]
@@ -86,8 +102,29 @@ def main() -> None:
                           caption=plots.caption_text(plots.short_path(first.net.file),
                                                      [str(r / "config.yaml") for r in runs], [str(r) for r in runs]))
     atomic_write_text(args.out / "criterion.md", "\n".join(lines) + "\n")
-    write_json(args.out / "criterion.json", {"merge_reference": reference, "runs": rows})
+    write_json(args.out / "criterion.json", {"runs": rows})
     print("\n".join(lines))
+
+
+# What the courteous rule's validation episodes depend on; SUMO's outputs and seeds are bookkeeping.
+SETTING = ("net", "sim", "safety", "scenario", "hv", "merger", "merger_alt", "av", "demand")
+
+
+def _setting(cfg: Config) -> str:
+    """The sections of `SETTING` as one canonical string: runs with equal strings share one merge reference."""
+    return json.dumps(cfg.model_dump(include=set(SETTING), exclude={s: {"outputs", "output_dir", "seed"}
+                                                                     for s in SETTING}),
+                      sort_keys=True, default=str)
+
+
+def _references(rows: list[dict]) -> str:
+    """The merge references in the table's words: one figure where every run shares it, else each with its runs."""
+    by_value: dict[float, list[str]] = {}
+    for r in rows:
+        by_value.setdefault(r["merge_reference"], []).append(Path(r["run"]).name)
+    if len(by_value) == 1:
+        return f"{next(iter(by_value)):.1f}%"
+    return "; ".join(f"{v:.1f}% for {', '.join(names)}" for v, names in by_value.items())
 
 
 def _differs(cfg: Config, default: Config) -> str:

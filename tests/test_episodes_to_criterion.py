@@ -43,3 +43,18 @@ def test_a_run_with_another_observation_driver_or_social_reward_is_set_apart() -
     assert (criterion._differs(narrow, default)
             == "reward.social=mean av.shield=sumo observation.height_px=16 observation.width_m=16.0")
     assert criterion._differs(load_config(ROOT / "configs" / "impatient.yaml"), default).startswith("merger.")
+
+
+def test_runs_share_a_merge_reference_only_where_the_courteous_rules_episodes_would_be_the_same() -> None:
+    # Runs under the safety layer were held to the courteous rule played without it, the first run's setting.
+    default = load_config(DEFAULT_CONFIG)
+    bookkeeping = load_config(DEFAULT_CONFIG, ["train.seed=7", "train.lr=0.0005", "reward.phi=0.7854",
+                                               "observation.frames=3", "sim.seed=7", "sim.outputs=true"])
+    assert criterion._setting(bookkeeping) == criterion._setting(default)
+    for other in (load_config(DEFAULT_CONFIG, ["av.shield=sumo"]), load_config(ROOT / "configs" / "mixed_merger.yaml"),
+                  load_config(DEFAULT_CONFIG, [f"net.file={ROOT / 'sumo_net' / 'merge' / 'merge.net.xml'}"])):
+        assert criterion._setting(other) != criterion._setting(default)
+    rows = [{"run": "runs/a", "merge_reference": 98.0}, {"run": "runs/b", "merge_reference": 98.0}]
+    assert criterion._references(rows) == "98.0%"
+    rows.append({"run": "runs/shielded", "merge_reference": 96.5})
+    assert criterion._references(rows) == "98.0% for a, b; 96.5% for shielded"
