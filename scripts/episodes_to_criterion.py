@@ -106,14 +106,15 @@ def main() -> None:
     print("\n".join(lines))
 
 
-# What the courteous rule's validation episodes depend on; SUMO's outputs and seeds are bookkeeping.
+# What the courteous rule's validation episodes depend on.
 SETTING = ("net", "sim", "safety", "scenario", "hv", "merger", "merger_alt", "av", "demand")
+# SUMO's outputs and the seed are bookkeeping: an evaluation turns the outputs on.
+BOOKKEEPING = {"outputs", "output_dir", "seed"}
 
 
 def _setting(cfg: Config) -> str:
     """The sections of `SETTING` as one canonical string: runs with equal strings share one merge reference."""
-    return json.dumps(cfg.model_dump(include=set(SETTING), exclude={s: {"outputs", "output_dir", "seed"}
-                                                                     for s in SETTING}),
+    return json.dumps(cfg.model_dump(include=set(SETTING), exclude={s: BOOKKEEPING for s in SETTING}),
                       sort_keys=True, default=str)
 
 
@@ -140,9 +141,8 @@ def _differs(cfg: Config, default: Config) -> str:
     out += [f"reward.{k}={v}" for k, v in cfg.reward.model_dump(exclude={"phi", "weights"}).items()
             if getattr(default.reward, k) != v]
     # merger_alt is left out: scenario.merger_alt_share says whether a run met it, its config file what it was.
-    # SUMO's outputs and the seed are bookkeeping: an evaluation turns the outputs on.
     for section in ("sim", "safety", "scenario", "hv", "merger", "av", "observation", "demand"):
-        mine = getattr(cfg, section).model_dump(exclude={"outputs", "output_dir", "seed"})
+        mine = getattr(cfg, section).model_dump(exclude=BOOKKEEPING)
         theirs = getattr(default, section).model_dump()
         out += [f"{section}.{k}={v}" for k, v in mine.items() if theirs.get(k) != v]
     return " ".join(out)
