@@ -221,8 +221,13 @@ def describe(fig: Mapping[str, float]) -> str:
 CRASH_MAX, CRASH_HIGH_MAX, MERGE_GAP = 2.0, 5.0, 5.0
 
 
-def meets_criterion(fig: Mapping[str, float], phi: float, merge_reference: float) -> bool:
+def meets_criterion(fig: Mapping[str, float], phi: float, merge_reference: float | None) -> bool:
     """Whether a validation's figures (`summarize`) meet the criterion at SVO angle `phi` [rad]; `merge_reference`:
-    the merge success [%] the altruistic AVs must come within `MERGE_GAP` points of."""
+    the merge success [%] the altruistic AVs must come within `MERGE_GAP` points of (unused, and may be None, at
+    phi <= 0)."""
     safe = fig["crash"] <= CRASH_MAX and fig["crash_high"] <= CRASH_HIGH_MAX
-    return safe and (phi <= 0 or fig["merge"] >= merge_reference - MERGE_GAP)
+    if phi <= 0:
+        return safe
+    if merge_reference is None:
+        raise ValueError(f"meets_criterion: phi = {phi} > 0 needs the merge reference")
+    return safe and fig["merge"] >= merge_reference - MERGE_GAP

@@ -3,12 +3,12 @@ of `agents.validation.meets_criterion` held, with its episodes and wall time.
 
     python scripts/episodes_to_criterion.py runs/learner/* --out results/learner
 
-The merge reference of altruistic runs is the `courteous` rule's merge success on the same validation seeds in the
-run's own setting (net, scenario, drivers, AVs, safety layer: a run under `av.shield: sumo` is held to the rule under
-it), evaluated once per setting into `OUT/courteous_validation_<hash of the setting>/` (resumable). Writes
-`OUT/criterion.md`, `OUT/criterion.json` and `OUT/learning_curves.png`: training and validation curves, one line
-per SVO angle and setting (mean over its seeds, with a band across them), a star where each run first met the
-criterion.
+The merge reference of altruistic runs (phi > 0; egoistic ones are held to the crash rate alone) is the `courteous`
+rule's merge success on the same validation seeds in the run's own setting (net, scenario, drivers, AVs, safety
+layer: a run under `av.shield: sumo` is held to the rule under it), evaluated once per setting into
+`OUT/courteous_validation_<hash of the setting>/` (resumable). Writes `OUT/criterion.md`, `OUT/criterion.json` and
+`OUT/learning_curves.png`: training and validation curves, one line per SVO angle and setting (mean over its seeds,
+with a band across them), a star where each run first met the criterion.
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ def main() -> None:
     for run in runs:
         cfg = load_config(run / "config.yaml")
         phi = float(cfg.reward.phi)
-        reference = reference_of(cfg)
+        reference = reference_of(cfg) if phi > 0 else None  # egoistic runs: no evaluation their criterion ignores
         validations = [{k: cell_float(v) for k, v in r.items()} for r in read_csv(run / VALIDATION_LOG)]
         met = next((v for v in validations if meets_criterion(v, phi, reference)), None)
         last = validations[-1] if validations else {}
@@ -79,8 +79,8 @@ def main() -> None:
     lines = ["# Episodes to the criterion", "",
              f"`{shlex.join(['python', *sys.argv])}`", "",
              f"Criterion: validation crash <= {CRASH_MAX:g}% with its upper bound <= {CRASH_HIGH_MAX:g}%; at phi > 0 "
-             f"also merge success >= courteous's on the validation seeds in the run's setting "
-             f"({_references(rows)}) - {MERGE_GAP:g} points.", "",
+             f"also merge success within {MERGE_GAP:g} points of courteous's on the validation seeds in the run's "
+             f"setting ({_references(rows)}).", "",
              "| run | phi | seed | differs from configs/default.yaml | validation crash [%] at [episodes] | "
              "criterion met at [episodes] | [h of training] |",
              "|---|---|---|---|---|---|---|"]
@@ -121,8 +121,10 @@ def _setting(cfg: Config) -> str:
 def _references(rows: list[dict]) -> str:
     """The merge references in the table's words: one figure where every run shares it, else each with its runs."""
     by_value: dict[float, list[str]] = {}
-    for r in rows:
+    for r in (r for r in rows if r["merge_reference"] is not None):
         by_value.setdefault(r["merge_reference"], []).append(Path(r["run"]).name)
+    if not by_value:
+        return "no run at phi > 0 here"
     if len(by_value) == 1:
         return f"{next(iter(by_value)):.1f}%"
     return "; ".join(f"{v:.1f}% for {', '.join(names)}" for v, names in by_value.items())

@@ -58,3 +58,7 @@ def test_runs_share_a_merge_reference_only_where_the_courteous_rules_episodes_wo
     assert criterion._references(rows) == "98.0%"
     rows.append({"run": "runs/shielded", "merge_reference": 96.5})
     assert criterion._references(rows) == "98.0% for a, b; 96.5% for shielded"
+    # An egoistic run's criterion has no merge in it, so it has no reference and none is evaluated for it.
+    egoistic = [{"run": "runs/phi0", "merge_reference": None}]
+    assert criterion._references(rows[:2] + egoistic) == "98.0%"
+    assert criterion._references(egoistic) == "no run at phi > 0 here"

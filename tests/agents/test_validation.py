@@ -70,7 +70,9 @@ def test_under_demand_best_asks_first_that_traffic_keeps_moving() -> None:
 
 def test_the_criterion_asks_safety_of_every_policy_and_merges_of_altruistic_ones() -> None:
     safe = {"crash": 1.5, "crash_high": 4.3, "merge": 90.0}  # 3 crashes in 200 episodes
-    assert meets_criterion(safe, 0.0, 97.5)  # egoistic: the merge does not count
+    assert meets_criterion(safe, 0.0, 97.5) and meets_criterion(safe, 0.0, None)  # egoistic: the merge does not count
+    with pytest.raises(ValueError, match="merge reference"):
+        meets_criterion(safe, 0.7854, None)
     assert meets_criterion(safe, 0.7854, 95.0) and not meets_criterion(safe, 0.7854, 97.5)  # within 5 points?
     assert not meets_criterion({**safe, "crash_high": 5.03}, 0.0, 0.0)  # 4 of 200: 2.0%, but the bound is 5.03%
     assert not meets_criterion({**safe, "crash": 2.5}, 0.0, 0.0)
