@@ -6,7 +6,8 @@ of `agents.validation.meets_criterion` held, with its episodes and wall time.
 The merge reference of altruistic runs (phi > 0; egoistic ones are held to the crash rate alone) is the `courteous`
 rule's merge success on the same validation seeds in the run's own setting (net, scenario, drivers, AVs, safety
 layer: a run under `av.shield: sumo` is held to the rule under it), evaluated once per setting into
-`OUT/courteous_validation_<hash of the setting>/` (resumable). Writes `OUT/criterion.md`, `OUT/criterion.json` and
+`OUT/courteous_validation_<hash of the setting>/` (resumable). Writes `OUT/criterion.md` (each run, then per
+setting the share of its runs that met the criterion, with its interval), `OUT/criterion.json` and
 `OUT/learning_curves.png`: training and validation curves, one line per SVO angle and setting (mean over its seeds,
 with a band across them), a star where each run first met the criterion.
 """
@@ -31,6 +32,7 @@ from cosim.environment.reward import TERMS
 from cosim.errors import CosimError, run_script
 from cosim.evaluation import plots
 from cosim.evaluation.runner import Baseline, evaluate
+from cosim.evaluation.stats import rate_ci
 from cosim.files import VALIDATION_LOG, atomic_write_text, cell_float, read_csv, write_json
 
 log = logging.getLogger("criterion")
@@ -91,6 +93,7 @@ def main() -> None:
         seeds = r["seed"] if r["first_seed"] is None else f"{r['first_seed']}, then {r['seed']}"  # a joined run's
         lines.append(f"| {r['run']} | {r['phi']:.4f} | {seeds} | {r['differs'] or 'nothing'} | {curve} | {met} | "
                      f"{hours} |")
+    lines += ["", *_summary(rows)]
     logs = [next((p for p in (run / "episodes.csv", run / "episodes.csv.gz") if p.is_file()), run / "episodes.csv")
             for run in runs]  # a run kept in results/ has its log gzipped (scripts/snapshot_run.py)
     groups: dict[str, list[Path]] = {}
@@ -128,6 +131,31 @@ def _references(rows: list[dict]) -> str:
     if len(by_value) == 1:
         return f"{next(iter(by_value)):.1f}%"
     return "; ".join(f"{v:.1f}% for {', '.join(names)}" for v, names in by_value.items())
+
+
+def _summary(rows: list[dict]) -> list[str]:
+    """Per setting (SVO angle and what differs from the default), how many of its runs met the criterion by the
+    longest budget any of them validated at, with a Wilson interval: one run meets it by chance where its policy's
+    crash rate is near the bar (200 episodes with 3 crashes pass, 4 fail), so settings are compared over seeds. A run
+    that stopped short of the budget without meeting it is left out (it might have met it later)."""
+    groups: dict[tuple[float, str], list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["phi"], r["differs"]), []).append(r)
+    out = ["| phi | differs from configs/default.yaml | runs | met by [episodes] | of the runs [%] | "
+           "half the runs met it by [episodes] |", "|---|---|---|---|---|---|"]
+    for (phi, differs), group in groups.items():
+        budget = max(r["last_validated"] for r in group)
+        counted = [r for r in group if r["met_at_episodes"] is not None or r["last_validated"] >= budget]
+        share = rate_ci([r["met_at_episodes"] is not None for r in counted])
+        at = sorted(math.inf if r["met_at_episodes"] is None else r["met_at_episodes"] for r in counted)
+        half = at[(len(at) + 1) // 2 - 1]  # the fewest episodes by which at least half the runs met it
+        short = len(group) - len(counted)
+        out.append(f"| {phi:.4f} | {differs or 'nothing'} | {len(counted)}"
+                   + (f" ({short} stopped short, left out)" if short else "")
+                   + f" | {budget:,.0f} | {int(share.mean * share.n)} of {share.n}: {100 * share.mean:.0f} "
+                   f"[{100 * share.low:.0f}, {100 * share.high:.0f}] | "
+                   + (f"not by {budget:,.0f}" if math.isinf(half) else f"{half:,.0f}") + " |")
+    return out
 
 
 def _differs(cfg: Config, default: Config) -> str:

@@ -62,3 +62,16 @@ def test_runs_share_a_merge_reference_only_where_the_courteous_rules_episodes_wo
     egoistic = [{"run": "runs/phi0", "merge_reference": None}]
     assert criterion._references(rows[:2] + egoistic) == "98.0%"
     assert criterion._references(egoistic) == "no run at phi > 0 here"
+
+
+def test_a_setting_is_summed_up_over_its_seeds_by_the_longest_budget_and_a_run_cut_short_unmet_is_left_out() -> None:
+    def run(met: float | None, last: float, differs: str = "") -> dict:
+        return {"phi": 0.7854, "differs": differs, "met_at_episodes": met, "last_validated": last}
+
+    rows = [run(1008, 2004), run(1500, 2004), run(None, 2004), run(1008, 1644), run(None, 1500),
+            run(None, 2004, "train.lr=0.0005")]
+    header, rule, default, lever = criterion._summary(rows)
+    assert header.startswith("| phi |") and rule.startswith("|---")
+    # Four runs counted (the one stopped at 1,500 unmet left out): three met, two of the four (half) by 1,008.
+    assert default == ("| 0.7854 | nothing | 4 (1 stopped short, left out) | 2,004 | 3 of 4: 75 [30, 95] | 1,008 |")
+    assert lever == "| 0.7854 | train.lr=0.0005 | 1 | 2,004 | 0 of 1: 0 [0, 79] | not by 2,004 |"
