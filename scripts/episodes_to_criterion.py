@@ -49,6 +49,7 @@ def main() -> None:
     if not runs:
         raise CosimError(f"no run among {[str(r) for r in args.runs]} has a {VALIDATION_LOG} (train.eval_every)")
     first = load_config(runs[0] / "config.yaml")
+    default = load_config(DEFAULT_CONFIG)
     references: dict[str, float] = {}
 
     def reference_of(cfg: Config) -> float:
@@ -56,13 +57,12 @@ def main() -> None:
         if key not in references:
             # Named by the setting, so a later call with its runs in another order resumes the same evaluations.
             folder = f"courteous_validation_{hashlib.sha256(key.encode()).hexdigest()[:8]}"
-            references[key] = evaluate(cfg, Baseline("courteous"), args.out / folder,
+            references[key] = evaluate(_reference_config(cfg, default), Baseline("courteous"), args.out / folder,
                                        episodes=cfg.train.eval_episodes, seed=VALIDATION_SEED_START,
                                        workers=args.workers, trajectories=0, plots=False
                                        )["metrics"]["merge success [%]"]["mean"]
         return references[key]
 
-    default = load_config(DEFAULT_CONFIG)
     rows = []
     for run in runs:
         cfg = load_config(run / "config.yaml")
@@ -119,6 +119,19 @@ def _setting(cfg: Config) -> str:
     """The sections of `SETTING` as one canonical string: runs with equal strings share one merge reference."""
     return json.dumps(cfg.model_dump(include=set(SETTING), exclude={s: BOOKKEEPING for s in SETTING}),
                       sort_keys=True, default=str)
+
+
+def _reference_config(cfg: Config, default: Config) -> Config:
+    """The default config with the run's setting (its bookkeeping keys the default's): the courteous rule's episodes
+    depend on nothing else, so the runs of one setting share its folder whatever their reward, angle or training (the
+    folder's episodes hold returns, and a resumed evaluation must have been made with the same config)."""
+    def own(section: str) -> object:
+        mine, theirs = getattr(cfg, section), getattr(default, section)
+        if mine is None or theirs is None:  # an optional section (demand, merger_alt): nothing to keep apart
+            return mine
+        return mine.model_copy(update={k: getattr(theirs, k) for k in BOOKKEEPING if k in type(mine).model_fields})
+
+    return default.model_copy(update={section: own(section) for section in SETTING})
 
 
 def _references(rows: list[dict]) -> str:

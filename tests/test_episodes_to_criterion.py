@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from cosim.config import DEFAULT_CONFIG, load_config
+from cosim.evaluation.store import config_hash
 
 ROOT = Path(__file__).resolve().parents[1]
 spec = importlib.util.spec_from_file_location("episodes_to_criterion", ROOT / "scripts" / "episodes_to_criterion.py")
@@ -54,6 +55,13 @@ def test_runs_share_a_merge_reference_only_where_the_courteous_rules_episodes_wo
     for other in (load_config(DEFAULT_CONFIG, ["av.shield=sumo"]), load_config(ROOT / "configs" / "mixed_merger.yaml"),
                   load_config(DEFAULT_CONFIG, [f"net.file={ROOT / 'sumo_net' / 'merge' / 'merge.net.xml'}"])):
         assert criterion._setting(other) != criterion._setting(default)
+    # ... and one evaluation of the rule, whose config is the setting's alone: a later table whose first run of the
+    # setting was trained with another reward resumed it, and was refused as a different evaluation.
+    shielded = load_config(DEFAULT_CONFIG, ["av.shield=sumo", "reward.phi=0.7854"])
+    assert (config_hash(criterion._reference_config(bookkeeping, default).to_dict())
+            == config_hash(criterion._reference_config(default, default).to_dict())
+            != config_hash(criterion._reference_config(shielded, default).to_dict()))
+    assert criterion._reference_config(shielded, default).av.shield == "sumo"
     rows = [{"run": "runs/a", "merge_reference": 98.0}, {"run": "runs/b", "merge_reference": 98.0}]
     assert criterion._references(rows) == "98.0%"
     rows.append({"run": "runs/shielded", "merge_reference": 96.5})
