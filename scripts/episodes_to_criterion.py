@@ -43,6 +43,8 @@ def main() -> None:
     parser.add_argument("runs", nargs="+", type=Path, help="training run folders")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--out", type=Path, default=Path("runs/criterion"))
+    parser.add_argument("--by", type=int, default=None, metavar="EPISODES",
+                        help="sum each setting up by this many episodes (default: the longest any of its runs ran)")
     args = parser.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     runs = [r for r in args.runs if (r / VALIDATION_LOG).is_file()]
@@ -93,7 +95,7 @@ def main() -> None:
         seeds = r["seed"] if r["first_seed"] is None else f"{r['first_seed']}, then {r['seed']}"  # a joined run's
         lines.append(f"| {r['run']} | {r['phi']:.4f} | {seeds} | {r['differs'] or 'nothing'} | {curve} | {met} | "
                      f"{hours} |")
-    lines += ["", *_summary(rows)]
+    lines += ["", *_summary(rows, args.by)]
     logs = [next((p for p in (run / "episodes.csv", run / "episodes.csv.gz") if p.is_file()), run / "episodes.csv")
             for run in runs]  # a run kept in results/ has its log gzipped (scripts/snapshot_run.py)
     groups: dict[str, list[Path]] = {}
@@ -146,26 +148,32 @@ def _references(rows: list[dict]) -> str:
     return "; ".join(f"{v:.1f}% for {', '.join(names)}" for v, names in by_value.items())
 
 
-def _summary(rows: list[dict]) -> list[str]:
-    """Per setting (SVO angle and what differs from the default), how many of its runs met the criterion by the
-    longest budget any of them validated at, with a Wilson interval: one run meets it by chance where its policy's
-    crash rate is near the bar (200 episodes with 3 crashes pass, 4 fail), so settings are compared over seeds. A run
-    that stopped short of the budget without meeting it is left out (it might have met it later)."""
+def _summary(rows: list[dict], by: int | None = None) -> list[str]:
+    """Per setting (SVO angle and what differs from the default), how many of its runs met the criterion by `by`
+    episodes (default: the longest budget any of them validated at), with a Wilson interval: one run meets it by
+    chance where its policy's crash rate is near the bar (200 episodes with 3 crashes pass, 4 fail), so settings are
+    compared over seeds. A run that stopped short of the budget without meeting it is left out (it might have met it
+    later)."""
     groups: dict[tuple[float, str], list[dict]] = {}
     for r in rows:
         groups.setdefault((r["phi"], r["differs"]), []).append(r)
     out = ["| phi | differs from configs/default.yaml | runs | met by [episodes] | of the runs [%] | "
            "half the runs met it by [episodes] |", "|---|---|---|---|---|---|"]
     for (phi, differs), group in groups.items():
-        budget = max(r["last_validated"] for r in group)
-        counted = [r for r in group if r["met_at_episodes"] is not None or r["last_validated"] >= budget]
-        share = rate_ci([r["met_at_episodes"] is not None for r in counted])
-        at = sorted(math.inf if r["met_at_episodes"] is None else r["met_at_episodes"] for r in counted)
+        budget = by or max(r["last_validated"] for r in group)
+        met = {id(r): r["met_at_episodes"] is not None and r["met_at_episodes"] <= budget for r in group}
+        counted = [r for r in group if met[id(r)] or r["last_validated"] >= budget]
+        if not counted:
+            out.append(f"| {phi:.4f} | {differs or 'nothing'} | none of {len(group)} ran {budget:,.0f} | | | |")
+            continue
+        hits = [met[id(r)] for r in counted]
+        share = rate_ci(hits)
+        at = sorted(r["met_at_episodes"] if met[id(r)] else math.inf for r in counted)
         half = at[(len(at) + 1) // 2 - 1]  # the fewest episodes by which at least half the runs met it
         short = len(group) - len(counted)
         out.append(f"| {phi:.4f} | {differs or 'nothing'} | {len(counted)}"
                    + (f" ({short} stopped short, left out)" if short else "")
-                   + f" | {budget:,.0f} | {int(share.mean * share.n)} of {share.n}: {100 * share.mean:.0f} "
+                   + f" | {budget:,.0f} | {sum(hits)} of {len(hits)}: {100 * share.mean:.0f} "
                    f"[{100 * share.low:.0f}, {100 * share.high:.0f}] | "
                    + (f"not by {budget:,.0f}" if math.isinf(half) else f"{half:,.0f}") + " |")
     return out

@@ -83,3 +83,6 @@ def test_a_setting_is_summed_up_over_its_seeds_by_the_longest_budget_and_a_run_c
     # Four runs counted (the one stopped at 1,500 unmet left out): three met, two of the four (half) by 1,008.
     assert default == ("| 0.7854 | nothing | 4 (1 stopped short, left out) | 2,004 | 3 of 4: 75 [30, 95] | 1,008 |")
     assert lever == "| 0.7854 | train.lr=0.0005 | 1 | 2,004 | 0 of 1: 0 [0, 79] | not by 2,004 |"
+    # By a shorter budget: a run met later counts as unmet, one cut short before it still counts.
+    by_1008 = criterion._summary(rows, by=1008)[2]
+    assert by_1008 == "| 0.7854 | nothing | 5 | 1,008 | 2 of 5: 40 [12, 77] | not by 1,008 |"
