@@ -152,8 +152,8 @@ def _summary(rows: list[dict], by: int | None = None) -> list[str]:
     """Per setting (SVO angle and what differs from the default), how many of its runs met the criterion by `by`
     episodes (default: the longest budget any of them validated at), with a Wilson interval: one run meets it by
     chance where its policy's crash rate is near the bar (200 episodes with 3 crashes pass, 4 fail), so settings are
-    compared over seeds. A run that stopped short of the budget without meeting it is left out (it might have met it
-    later)."""
+    compared over seeds. A run that stopped short of the budget without meeting it counts as unmet (said beside the
+    count): it might have met it later, so the share is then a lower bound."""
     groups: dict[tuple[float, str], list[dict]] = {}
     for r in rows:
         groups.setdefault((r["phi"], r["differs"]), []).append(r)
@@ -161,18 +161,13 @@ def _summary(rows: list[dict], by: int | None = None) -> list[str]:
            "half the runs met it by [episodes] |", "|---|---|---|---|---|---|"]
     for (phi, differs), group in groups.items():
         budget = by or max(r["last_validated"] for r in group)
-        met = {id(r): r["met_at_episodes"] is not None and r["met_at_episodes"] <= budget for r in group}
-        counted = [r for r in group if met[id(r)] or r["last_validated"] >= budget]
-        if not counted:
-            out.append(f"| {phi:.4f} | {differs or 'nothing'} | none of {len(group)} ran {budget:,.0f} | | | |")
-            continue
-        hits = [met[id(r)] for r in counted]
+        hits = [r["met_at_episodes"] is not None and r["met_at_episodes"] <= budget for r in group]
+        short = sum(not hit and r["last_validated"] < budget for r, hit in zip(group, hits, strict=True))
         share = rate_ci(hits)
-        at = sorted(r["met_at_episodes"] if met[id(r)] else math.inf for r in counted)
+        at = sorted(r["met_at_episodes"] if hit else math.inf for r, hit in zip(group, hits, strict=True))
         half = at[(len(at) + 1) // 2 - 1]  # the fewest episodes by which at least half the runs met it
-        short = len(group) - len(counted)
-        out.append(f"| {phi:.4f} | {differs or 'nothing'} | {len(counted)}"
-                   + (f" ({short} stopped short, left out)" if short else "")
+        out.append(f"| {phi:.4f} | {differs or 'nothing'} | {len(group)}"
+                   + (f" ({short} stopped short unmet: at least)" if short else "")
                    + f" | {budget:,.0f} | {sum(hits)} of {len(hits)}: {100 * share.mean:.0f} "
                    f"[{100 * share.low:.0f}, {100 * share.high:.0f}] | "
                    + (f"not by {budget:,.0f}" if math.isinf(half) else f"{half:,.0f}") + " |")
