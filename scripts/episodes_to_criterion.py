@@ -46,6 +46,8 @@ def main() -> None:
     parser.add_argument("--by", type=int, default=None, metavar="EPISODES",
                         help="sum each setting up by this many episodes (default: the longest any of its runs ran)")
     args = parser.parse_args()
+    if args.by is not None and args.by <= 0:
+        parser.error(f"--by: a number of episodes above 0, got {args.by}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", datefmt="%H:%M:%S")
     runs = [r for r in args.runs if (r / VALIDATION_LOG).is_file()]
     if not runs:
