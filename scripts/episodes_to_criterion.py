@@ -23,7 +23,7 @@ import shlex
 import sys
 from pathlib import Path
 
-from agents.checkpoint import first_seed
+from agents.checkpoint import first_seed, run_record
 from agents.config import train_config
 from agents.train import RESUMABLE
 from agents.validation import CRASH_HIGH_MAX, CRASH_MAX, MERGE_GAP, meets_criterion
@@ -77,7 +77,8 @@ def main() -> None:
         last = validations[-1] if validations else {}
         rows.append({"run": str(run), "phi": phi, "seed": cfg.train.seed, "first_seed": first_seed(run),
                      "validations": len(validations),
-                     "differs": _differs(cfg, default), "curve": [(v["episodes"], v["crash"]) for v in validations],
+                     "differs": _differs(cfg, default, run_record(run).get("init_from")),
+                     "curve": [(v["episodes"], v["crash"]) for v in validations],
                      "last_validated": last.get("episodes", 0), "merge_reference": reference,
                      "met_at_episodes": met and met["episodes"],
                      "met_at_train_s": met and met["train_s"], "best_crash": min((v["crash"] for v in validations),
@@ -176,13 +177,17 @@ def _summary(rows: list[dict], by: int | None = None) -> list[str]:
     return out
 
 
-def _differs(cfg: Config, default: Config) -> str:
+def _differs(cfg: Config, default: Config, started_from: str | None = None) -> str:
     """The run's settings that are not the default config's (the seed, the SVO angle and the bookkeeping keys
     aside), as KEY=VALUE: a run on both merging drivers differs in its scenario, one with a narrower VelocityMap in
-    its observation, one with the impatient merging vehicle in its merger."""
+    its observation, one with the impatient merging vehicle in its merger. `started_from`: the policy a run started
+    from by `--init-from` (its net.json says; its config keeps train.init_from null), which sets it apart as the key
+    does."""
     # What a resume may change is how long and how a run ran, not what it learned with; where it started is.
     ignored = {"seed", *(k.removeprefix("train.") for k in RESUMABLE)} - {"init_from"}
     mine, theirs = train_config(cfg).model_dump(), train_config(default).model_dump()
+    if started_from is not None and mine.get("init_from") is None:
+        mine["init_from"] = started_from
     out = [f"train.{k}={v}" for k, v in mine.items() if k not in ignored and theirs.get(k) != v]
     out += [f"reward.weights.{k}={getattr(cfg.reward.weights, k)}" for k in TERMS
             if getattr(cfg.reward.weights, k) != getattr(default.reward.weights, k)]

@@ -28,6 +28,10 @@ def test_a_fine_tune_is_set_apart_by_where_it_started(tmp_path: Path) -> None:
     start = tmp_path / "start.pt"
     tuned = load_config(DEFAULT_CONFIG, [f"train.init_from={start}"])
     assert criterion._differs(tuned, load_config(DEFAULT_CONFIG)) == f"train.init_from={start}"
+    # Started by `cosim train --init-from`: the config keeps the key null and the run's net.json names the policy.
+    cli = load_config(DEFAULT_CONFIG)
+    assert criterion._differs(cli, load_config(DEFAULT_CONFIG), str(start)) == f"train.init_from={start}"
+    assert criterion._differs(tuned, load_config(DEFAULT_CONFIG), "elsewhere.pt") == f"train.init_from={start}"
 
 
 def test_a_run_on_both_merging_drivers_is_set_apart_by_its_scenario() -> None:
