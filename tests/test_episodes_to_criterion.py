@@ -91,3 +91,13 @@ def test_a_setting_is_summed_up_over_its_seeds_and_a_run_cut_short_unmet_counts_
     # By a shorter budget: a run met later counts as unmet, and no run stopped short of it.
     by_1008 = criterion._summary(rows, by=1008)[2]
     assert by_1008 == "| 0.7854 | nothing | 5 | 1,008 | 2 of 5: 40 [12, 77] | not by 1,008 |"
+
+
+def test_egoistic_runs_are_tabled_without_an_evaluation_of_the_courteous_rule(tmp_path: Path, monkeypatch) -> None:
+    # Their criterion has no merge in it; each table of them played the rule's 200 validation episodes for nothing.
+    runs = [ROOT / "results" / "learner" / f"base_phi0_s{s}" for s in (1, 2)]
+    monkeypatch.setattr(sys, "argv", ["episodes_to_criterion.py", *map(str, runs), "--out", str(tmp_path)])
+    criterion.main()
+    assert not list(tmp_path.glob("courteous_validation_*"))
+    table = (tmp_path / "criterion.md").read_text()
+    assert "(no run at phi > 0 here)" in table and "| 0.0000 | train.obs_norm=False" in table
