@@ -103,7 +103,7 @@ def main() -> None:
             for run in runs]  # a run kept in results/ has its log gzipped (scripts/snapshot_run.py)
     groups: dict[str, list[Path]] = {}
     for log_path, r in zip(logs, rows, strict=True):
-        groups.setdefault(f"phi={r['phi']:.3f}" + (f", {r['differs']}" if r["differs"] else ""), []).append(log_path)
+        groups.setdefault(_group(r), []).append(log_path)
     met = {log_path: r["met_at_episodes"] for log_path, r in zip(logs, rows, strict=True)
            if r["met_at_episodes"] is not None}
     plots.training_curves(groups, args.out / "learning_curves.png", criterion_met=met,
@@ -151,18 +151,24 @@ def _references(rows: list[dict]) -> str:
     return "; ".join(f"{v:.1f}% for {', '.join(names)}" for v, names in by_value.items())
 
 
+def _group(row: dict) -> str:
+    """A run's setting as the figure and the summary name it: its SVO angle and what differs from the default."""
+    return f"phi={row['phi']:.3f}" + (f", {row['differs']}" if row["differs"] else "")
+
+
 def _summary(rows: list[dict], by: int | None = None) -> list[str]:
     """Per setting (SVO angle and what differs from the default), how many of its runs met the criterion by `by`
     episodes (default: the longest budget any of them validated at), with a Wilson interval: one run meets it by
     chance where its policy's crash rate is near the bar (200 episodes with 3 crashes pass, 4 fail), so settings are
     compared over seeds. A run that stopped short of the budget without meeting it counts as unmet (said beside the
     count): it might have met it later, so the share is then a lower bound."""
-    groups: dict[tuple[float, str], list[dict]] = {}
+    groups: dict[str, list[dict]] = {}
     for r in rows:
-        groups.setdefault((r["phi"], r["differs"]), []).append(r)
+        groups.setdefault(_group(r), []).append(r)
     out = ["| phi | differs from configs/default.yaml | runs | met by [episodes] | of the runs [%] | "
            "half the runs met it by [episodes] |", "|---|---|---|---|---|---|"]
-    for (phi, differs), group in groups.items():
+    for group in groups.values():
+        phi, differs = group[0]["phi"], group[0]["differs"]
         budget = by or max(r["last_validated"] for r in group)
         hits = [r["met_at_episodes"] is not None and r["met_at_episodes"] <= budget for r in group]
         short = sum(not hit and r["last_validated"] < budget for r, hit in zip(group, hits, strict=True))
