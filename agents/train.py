@@ -173,6 +173,11 @@ def config_changes(saved: Path, new: dict[str, Any]) -> dict[str, tuple[Any, Any
             if old.get(k) != now.get(k) and k not in RESUMABLE}
 
 
+def _started_from(saved: Path) -> str | None:
+    """The policy a run started from, as its config.yaml (read by `config_changes` already) records it."""
+    return flat_keys(read_yaml(saved)).get("train.init_from")
+
+
 def _record_changes(out_dir: Path, changes: dict[str, tuple[Any, Any]], update: int) -> None:
     path = out_dir / "config_changes.yaml"
     history = yaml.safe_load(path.read_text()) if path.is_file() else []
@@ -370,6 +375,13 @@ class _Run:
                                       "or choose another --out")
             payload = read_checkpoint(ckpt_path) if resume else None
             changes = config_changes(out_dir / "config.yaml", run_config(cfg, tc)) if resume else {}
+            # The run's config names the policy it started from, whoever asked for it (`--init-from` or the key), and
+            # keeps naming it over resumes, whose command lines do not: `--config RUN/config.yaml` then starts the
+            # same way, and a reader of the config needs no other record.
+            began = start[1]["path"] if start is not None else None
+            if resume:
+                began = _started_from(out_dir / "config.yaml")
+            tc = tc.model_copy(update={"init_from": None if began is None else str(Path(began).resolve())})
             if changes and not allow_change:
                 listed = "; ".join(f"{k}: {old!r} -> {new!r}" for k, (old, new) in changes.items())
                 # A run from before a key existed: its config.yaml lacks the key, which reads as today's default.

@@ -187,8 +187,8 @@ def _differs(cfg: Config, default: Config, started_from: str | None = None) -> s
     """The run's settings that are not the default config's (the seed, the SVO angle and the bookkeeping keys
     aside), as KEY=VALUE: a run on both merging drivers differs in its scenario, one with a narrower VelocityMap in
     its observation, one with the impatient merging vehicle in its merger. `started_from`: the policy a run started
-    from by `--init-from` (its net.json says; its config keeps train.init_from null), which sets it apart as the key
-    does."""
+    from by `--init-from` as its net.json says (runs from before 2026-12-07 kept train.init_from null in their
+    config), which sets it apart as the key does."""
     # What a resume may change is how long and how a run ran, not what it learned with; where it started is.
     ignored = {"seed", *(k.removeprefix("train.") for k in RESUMABLE)} - {"init_from"}
     mine, theirs = train_config(cfg).model_dump(), train_config(default).model_dump()

@@ -20,8 +20,9 @@ snapshot's stay.
 its config the same but for `train.seed`, which a continuation changes so as not to replay START's training episodes,
 and the keys a resume may change): START's logs come first, RUN's follow with their counts (updates, episodes, samples,
 training time) running on from START's, the validation log's `best` marks are redone over both parts by training's rule
-(`agents.validation.better`), `best.pt` is the better part's, the policy files' counters count both parts, and
-`net.json` says where the parts meet (`continues`; a third part joined onto a joined snapshot keeps the record of the
+(`agents.validation.better`), `best.pt` is the better part's, the policy files' counters count both parts, the
+config and `net.json` name the policy the first part started from (none from scratch), and `net.json` says where the
+parts meet (`continues`; a third part joined onto a joined snapshot keeps the record of the
 join before it, and the first part's training seed); OUT must be another folder than START. Validation curves, the
 episodes to the criterion and held-out evaluations then read the snapshot as one run. Runs under demand are not joined
 (their `best.pt` also weighs the flow offered).
@@ -147,7 +148,15 @@ def join(run: Path, start: Path, out: Path, counters: dict[str, float]) -> None:
         else:
             export_policy(run / BEST_NAME, out / BEST_NAME, counters=_counted_on(run / BEST_NAME, counters),
                           validation=best)
+    # The joined run began where its first part did: from scratch, or from the policy that part started from.
+    began = load_config(start / "config.yaml").train.init_from
+    data = yaml.safe_load((out / "config.yaml").read_text(encoding="utf-8"))
+    data["train"]["init_from"] = None if began is None else os.path.relpath(began, out.resolve())
+    atomic_write_text(out / "config.yaml", yaml.safe_dump(data, sort_keys=False))
     record = run_record(out)
+    record.pop("init_from", None)
+    if run_record(start).get("init_from") is not None:
+        record["init_from"] = run_record(start)["init_from"]
     first = first_seed(start)
     record["continues"] = {"snapshot": os.path.relpath(start.resolve(), out.resolve()), "at": _counts(counters),
                            "train_seed": load_config(start / "config.yaml").train.seed if first is None else first,

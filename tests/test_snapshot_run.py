@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from agents.checkpoint import BEST_NAME, POLICY_NAME, first_seed, load_policy
+from agents.checkpoint import BEST_NAME, POLICY_NAME, first_seed, load_policy, run_record
 from agents.train import train
 from agents.validation import better
 from cosim.config import load_config
@@ -79,6 +79,10 @@ def test_a_run_continued_from_a_snapshot_joins_it_as_one_run(tmp_path: Path, mon
     assert record["at"]["episodes"] == 8 and record["train_seed"] == 3
     assert first_seed(joined) == 3 and first_seed(tmp_path / "then") is None  # held out, it goes by seed 3
     assert (joined / record["snapshot"]).resolve() == (tmp_path / "start").resolve()
+    # The joined run began where its first part did, from scratch, though its second part's config names the start.
+    started = Path(load_config(tmp_path / "then" / "config.yaml").train.init_from)
+    assert started == (tmp_path / "start" / POLICY_NAME).resolve()
+    assert load_config(joined / "config.yaml").train.init_from is None and "init_from" not in run_record(joined)
 
     # Whichever part validated best gives best.pt: the first part where the second's validations were all worse,
     # the second where the first's were.

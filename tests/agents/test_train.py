@@ -478,8 +478,13 @@ def test_a_resumed_fine_tune_still_names_the_policy_it_started_from(tmp_path: Pa
     train(cfg_with(), tune, workers=1, episodes=2, progress=False, init_from=tmp_path / "start.pt")
     started = json.loads((tune / "net.json").read_text())["init_from"]
     assert Path(started).resolve() == (tmp_path / "start.pt").resolve()
+    # Its config named it too, so that `--config RUN/config.yaml` starts the same way: no longer null.
+    assert load_config(tune / "config.yaml").train.init_from == str((tmp_path / "start.pt").resolve())
     train(cfg_with(), tune, workers=1, episodes=4, resume=True, progress=False)
     assert json.loads((tune / "net.json").read_text())["init_from"] == started
+    assert load_config(tune / "config.yaml").train.init_from == str((tmp_path / "start.pt").resolve())
+    # A run from scratch names none, before and after a resume.
+    assert load_config(tmp_path / "first" / "config.yaml").train.init_from is None
 
 
 def test_a_signal_during_a_checkpoint_write_waits_until_the_write_is_whole(caplog: pytest.LogCaptureFixture) -> None:
