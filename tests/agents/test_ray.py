@@ -112,6 +112,7 @@ def test_a_failing_actor_in_training_is_restarted_and_its_episode_goes_on(tmp_pa
     assert len(read_csv(tmp_path / "run" / "episodes.csv")) == result.episodes == 8
 
 
+@pytest.mark.slow  # 12 s; the pool's own checks on Ray stay in the default tier
 def test_ray_trains_the_smoke_config_like_the_local_backend_and_resumes(tmp_path: Path) -> None:
     # SUMO is deterministic per seed and the learner samples the actions, so the same config and seeds give the
     # same run on either backend: the same episodes and, bit for bit, the same weights.

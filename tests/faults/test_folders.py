@@ -219,12 +219,13 @@ def _keep_rows(path: Path, n: int) -> None:
 
 
 @pytest.mark.parametrize("damage,warnings", [
-    (lambda run: (run / "episodes.csv").unlink(),
-     ["run/episodes.csv is missing; it held the 4 episodes that the checkpoint counts"]),
-    (lambda run: (_keep_rows(run / "episodes.csv", 1), _keep_rows(run / "updates.csv", 1)),
-     ["run/episodes.csv holds 1 of the 4 episodes that the checkpoint counts",
-      "run/updates.csv ends at update 1, but the checkpoint is at update 2 (a row every 1"]),
-], ids=["deleted", "cut"])
+    pytest.param(lambda run: (run / "episodes.csv").unlink(),
+                 ["run/episodes.csv is missing; it held the 4 episodes that the checkpoint counts"],
+                 id="deleted", marks=pytest.mark.slow),  # 8 s; the cut logs warn alike in the default tier
+    pytest.param(lambda run: (_keep_rows(run / "episodes.csv", 1), _keep_rows(run / "updates.csv", 1)),
+                 ["run/episodes.csv holds 1 of the 4 episodes that the checkpoint counts",
+                  "run/updates.csv ends at update 1, but the checkpoint is at update 2 (a row every 1"], id="cut"),
+])
 def test_resume_warns_of_logs_that_lack_the_checkpoints_rows(smoke_run: Path, cli: Any, damage: Any,
                                                             warnings: list[str]) -> None:
     shutil.copytree(smoke_run, cli.folder / "run")

@@ -71,6 +71,7 @@ def test_kill_9_of_training_then_resume_leaves_nothing(cli: Any) -> None:
     assert not _owned_by(SHM, proc.pid)
 
 
+@pytest.mark.slow  # 9-10 s; kill -9 of an evaluation stays in the default tier
 def test_kill_9_of_a_sweep_then_the_next_run_leaves_nothing(cli: Any) -> None:
     proc = cli.start("sweep", "--config", cli.SMOKE, "--phi", "0", "--seeds", "0", "--budget-min", "0.05",
                      "--eval-episodes", "2", "--baselines", "idle", "--out", "sweep")

@@ -105,7 +105,7 @@ def _start_training(cli: Any, *extra: str) -> subprocess.Popen[str]:
                      *cli.settings("train.episodes=400", "train.checkpoint_every=2", *extra))
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("sig", [signal.SIGINT, pytest.param(signal.SIGTERM, marks=pytest.mark.slow)])  # 8-10 s each
 def test_a_signal_stops_training_with_a_checkpoint_and_exit_130(cli: Any, tmp_path: Path,
                                                                sig: signal.Signals) -> None:
     proc = _start_training(cli)
@@ -118,7 +118,8 @@ def test_a_signal_stops_training_with_a_checkpoint_and_exit_130(cli: Any, tmp_pa
     assert cli.no_leftovers()
 
 
-@pytest.mark.parametrize("fault", ["kill", pytest.param("stop", marks=pytest.mark.slow)])
+@pytest.mark.slow  # 11-14 s each
+@pytest.mark.parametrize("fault", ["kill", "stop"])
 def test_a_killed_or_stopped_worker_is_replaced_and_training_goes_on(cli: Any, tmp_path: Path,
                                                                      fault: str) -> None:
     proc = _start_training(cli, "train.step_timeout=5", "train.episodes=12")

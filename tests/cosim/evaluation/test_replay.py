@@ -117,6 +117,7 @@ def _near(img: np.ndarray, rgb: tuple[int, int, int], tol: int = 12) -> np.ndarr
     return (np.abs(img.astype(int) - np.asarray(rgb)) <= tol).all(axis=-1)
 
 
+@pytest.mark.slow  # 9 s; CI, where it must run, runs it with the long tests
 def test_sumo_gui_replay_under_xvfb(display: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("DISPLAY", display)
     shot = tmp_path / "gui.png"
