@@ -60,10 +60,13 @@ RUNNING_ON = {"updates.csv": {**_COUNTS, "restarts": "restarts"}, VALIDATION_LOG
               "episodes.csv.gz": {"episode": "episodes", "update": "updates"}}
 
 
-def portable_config(config: Path, out: Path) -> None:
-    """`config` (a run's config.yaml) written into `out` with the paths it names (`FILE_KEYS`: the net, the policy
-    it started from) relative to `out` (`cosim.config.load_config` reads them relative to the file's folder)."""
+def portable_config(config: Path, out: Path, **train: Any) -> None:
+    """`config` (a run's config.yaml), with `train`'s keys set in its train section, written into `out` with the
+    paths it names (`FILE_KEYS`: the net, the policy it started from) relative to `out` (`cosim.config.load_config`
+    reads them relative to the file's folder)."""
     data = yaml.safe_load(config.read_text(encoding="utf-8"))
+    if train:
+        data["train"].update(train)
     for section, key in FILE_KEYS:
         if data.get(section, {}).get(key):
             data[section][key] = os.path.relpath(Path(data[section][key]).resolve(), out.resolve())
@@ -149,19 +152,17 @@ def join(run: Path, start: Path, out: Path, counters: dict[str, float]) -> None:
             export_policy(run / BEST_NAME, out / BEST_NAME, counters=_counted_on(run / BEST_NAME, counters),
                           validation=best)
     # The joined run began where its first part did: from scratch, or from the policy that part started from.
-    began = load_config(start / "config.yaml").train.init_from
-    data = yaml.safe_load((out / "config.yaml").read_text(encoding="utf-8"))
-    data["train"]["init_from"] = None if began is None else os.path.relpath(began, out.resolve())
-    atomic_write_text(out / "config.yaml", yaml.safe_dump(data, sort_keys=False))
+    first_cfg, first_record = load_config(start / "config.yaml"), run_record(start)
+    portable_config(run / "config.yaml", out, init_from=first_cfg.train.init_from)
     record = run_record(out)
     record.pop("init_from", None)
-    if run_record(start).get("init_from") is not None:
-        record["init_from"] = run_record(start)["init_from"]
+    if first_record.get("init_from") is not None:
+        record["init_from"] = first_record["init_from"]
     first = first_seed(start)
     record["continues"] = {"snapshot": os.path.relpath(start.resolve(), out.resolve()), "at": _counts(counters),
-                           "train_seed": load_config(start / "config.yaml").train.seed if first is None else first,
+                           "train_seed": first_cfg.train.seed if first is None else first,
                            "fresh": "optimizer and value normaliser (a start from a policy file, not a resume)",
-                           "before": run_record(start).get("continues")}
+                           "before": first_record.get("continues")}
     write_json(out / NET_RECORD, record)
 
 
