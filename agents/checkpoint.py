@@ -25,8 +25,8 @@ Contract:
   when the run trained with `train.action_mask` (its checkpoint's train section; runs from before the key
   existed trained without).
 Payload layout (format "cosim-ma-a2c", version 2): spec {agents, obs_shape, obs_dtype, n_actions,
-shared_policy, feature_dim, head_hidden, shared_encoder, obs_norm and feature_norm (absent before they existed:
-shared, off, off)}, policy
+shared_policy, feature_dim, head_hidden, shared_encoder, obs_norm, feature_norm and central_critic (absent before
+they existed: shared, off, off, off)}, policy
 (MultiAgentPolicy.state_dict()), counters (with train_s), rng {python, numpy, torch}, train (TrainConfig as a dict),
 config (Config.to_dict()), phis (each AV's SVO [rad]). The policy file ("cosim-policy", same version): spec, nets,
 counters, train, config, phis.
@@ -169,10 +169,11 @@ def _checked_checkpoint(payload: Any, path: Path, expect: dict[str, Any] | None 
 
 
 # Spec entries added after checkpoints were first written, with what the checkpoints without them trained with.
-SPEC_DEFAULTS: dict[str, Any] = {"shared_encoder": True, "obs_norm": False, "feature_norm": False}
+SPEC_DEFAULTS: dict[str, Any] = {"shared_encoder": True, "obs_norm": False, "feature_norm": False,
+                                 "central_critic": False}
 # Spec entries that are keys of the config's train section.
 TRAIN_SPEC_KEYS = frozenset({"shared_policy", "feature_dim", "head_hidden", "shared_encoder", "obs_norm",
-                             "feature_norm"})
+                             "feature_norm", "central_critic"})
 
 
 def check_spec(payload: dict[str, Any], expect: dict[str, Any], path: Path) -> None:
@@ -215,7 +216,8 @@ def build_net(spec: dict[str, Any]) -> ActorCritic:
                        head_hidden=spec["head_hidden"],
                        shared_encoder=spec.get("shared_encoder", SPEC_DEFAULTS["shared_encoder"]),
                        obs_norm=spec.get("obs_norm", SPEC_DEFAULTS["obs_norm"]),
-                       feature_norm=spec.get("feature_norm", SPEC_DEFAULTS["feature_norm"]))
+                       feature_norm=spec.get("feature_norm", SPEC_DEFAULTS["feature_norm"]),
+                       central_critic=spec.get("central_critic", SPEC_DEFAULTS["central_critic"]))
 
 
 def _checked_policy_file(payload: Any, path: Path) -> dict[str, Any]:

@@ -157,8 +157,9 @@ def _act(pool: WorkerPool, policy: MultiAgentPolicy, batch: Batch, live: list[tu
     w_, i_, t_ = torch.tensor(rows), torch.tensor(agents), torch.tensor(times)
     n_workers, n_agents = batch.valid.shape[1:]
     flat = (t_ * n_workers + w_) * n_agents + i_
+    # A worker's live agents act on one decision of its env: its team (a central critic's).
     actions, logp, values = policy.act(batch.observations(flat), i_, update, batch.masks[t_, w_, i_],
-                                       slots=w_ * n_agents + i_, continues=batch.continues(flat))
+                                       slots=w_ * n_agents + i_, continues=batch.continues(flat), teams=w_)
     batch.actions[t_, w_, i_], batch.logp[t_, w_, i_], batch.values[t_, w_, i_] = actions, logp, values
     full = np.ones((len(ws), batch.valid.shape[2]), dtype=np.int64)  # idle for agents that are gone
     pos = {w: k for k, w in enumerate(ws)}
@@ -285,4 +286,5 @@ class Bootstraps:
             return
         t_, w_, i_ = (torch.tensor(x) for x in zip(*self.cut, strict=True))
         batch.truncated[t_, w_, i_] = True
-        batch.final_values[t_, w_, i_] = policy.value(torch.from_numpy(np.concatenate(self.obs)), i_, update)
+        batch.final_values[t_, w_, i_] = policy.value(torch.from_numpy(np.concatenate(self.obs)), i_, update,
+                                                      teams=t_ * batch.valid.shape[1] + w_)

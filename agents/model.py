@@ -11,7 +11,9 @@ and the critic share the encoder, as the paper's network does, unless `shared_en
 (`train.shared_encoder`). With `obs_norm=True` (`train.obs_norm`) the input is standardised pixel by pixel first
 (`ObsNorm`: running statistics the learner updates, saved with the weights), as SB3's `VecNormalize` does for
 vector observations; without it, as in the paper, the input is only scaled to [0, 1]. With `feature_norm=True`
-(`train.feature_norm`) the encoder normalises its features (LayerNorm between its FC layer and its ReLU).
+(`train.feature_norm`) the encoder normalises its features (LayerNorm between its FC layer and its ReLU). With
+`central_critic=True` (`train.central_critic`) the critic reads, beside an AV's features, the mean of those of every AV
+of its env at that decision (`teams`); the actor stays on the AV's own map, so acting needs no other AV's.
 The first layer's depth kernel is 1 and the second's depth stride 1, so a frame's part in an observation's second
 layer is the same wherever the frame stands in a stack (`frame_features`: its first-layer output convolved with each of
 the second layer's depth taps): `forward_frames` takes observations as their distinct frames and where each
@@ -221,11 +223,11 @@ class ActorCritic(nn.Module):
     """Feature extractor (`VelocityMapEncoder`) under an actor head (logits) and a critic head (value); with
     `shared_encoder=False` the critic has an encoder of its own (`critic_features`); with `obs_norm=True` both
     read the input standardised by `obs_norm` (an `ObsNorm`, else None); with `feature_norm=True` each encoder
-    normalises its features."""
+    normalises its features; with `central_critic=True` the critic also reads its team's mean features."""
 
     def __init__(self, obs_shape: tuple[int, ...], n_actions: int = 5, *, feature_dim: int = 512,
                  head_hidden: int = 256, bf16: bool = False, shared_encoder: bool = True,
-                 obs_norm: bool = False, feature_norm: bool = False) -> None:
+                 obs_norm: bool = False, feature_norm: bool = False, central_critic: bool = False) -> None:
         super().__init__()
         # Run the forward pass in bfloat16 (weights and outputs stay float32): about twice as fast on CPUs with
         # AMX / AVX512-BF16 (scripts/bench_train.py); the trainer turns it on there, evaluation never does.
@@ -241,8 +243,12 @@ class ActorCritic(nn.Module):
         self.obs_norm = ObsNorm(*self.obs_shape[1:]) if obs_norm else None
         self.actor = nn.Sequential(_init(nn.Linear(feature_dim, head_hidden), relu_gain), nn.ReLU(),
                                    _init(nn.Linear(head_hidden, n_actions), 0.01))
-        self.critic = nn.Sequential(_init(nn.Linear(feature_dim, head_hidden), relu_gain), nn.ReLU(),
-                                    _init(nn.Linear(head_hidden, 1), 1.0))
+        # A centralised critic (MAPPO's; Lowe et al. 2017's centralised training) reads its own features beside the
+        # mean of its team's: the SVO reward's social part is the others' utility, the merging vehicle's included,
+        # which the AVs around it see and this one may not.
+        self.central_critic = central_critic
+        self.critic = nn.Sequential(_init(nn.Linear(feature_dim * (2 if central_critic else 1), head_hidden),
+                                          relu_gain), nn.ReLU(), _init(nn.Linear(head_hidden, 1), 1.0))
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any) -> None:
         # Checkpoints written before the encoder was a module of its own name its layers conv.* and fc.*.
@@ -253,20 +259,24 @@ class ActorCritic(nn.Module):
     def _precision(self, obs: torch.Tensor, float32: bool = False) -> torch.autocast:
         return torch.autocast(obs.device.type, dtype=torch.bfloat16, enabled=self.bf16 and not float32)
 
-    def forward(self, obs: torch.Tensor, float32: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, obs: torch.Tensor, float32: bool = False,
+                teams: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, F, C, H, W) -> logits (B, A), values (B,), float32; `float32`: without bfloat16 autocast even where
-        the network trains with it (validation plays as evaluation does). Through Table 1's Conv3D stack itself,
-        the fastest way for observations that share no frames (scripts/bench_frames.py)."""
+        the network trains with it (validation plays as evaluation does); `teams` (B,): for a central critic, the
+        observations that are of one env at one decision share a number (None: each its own; `_critic_input`).
+        Through Table 1's Conv3D stack itself, the fastest way for observations that share no frames
+        (scripts/bench_frames.py)."""
         with self._precision(obs, float32):
             x = prepare(obs, self.obs_norm)
             h = self.features.encode(x)
-            return self._outputs(h, h if self.critic_features is None else self.critic_features.encode(x))
+            return self._outputs(h, h if self.critic_features is None else self.critic_features.encode(x), teams)
 
-    def forward_frames(self, frames: torch.Tensor, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward_frames(self, frames: torch.Tensor, index: torch.Tensor,
+                       teams: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """`forward` of B observations given as their distinct frames (K, C, H, W) and, for each observation, where
         its frames are in them, oldest to newest (B, F): the first two layers' work is once per distinct frame."""
         with self._precision(frames):
-            return self.from_features(self.frame_features(frames), index)
+            return self.from_features(self.frame_features(frames), index, teams)
 
     def frame_features(self, frames: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """Frames (K, C, H, W) of any dtype the observations have -> each one's part in the second layer (K, kd, h2,
@@ -275,16 +285,29 @@ class ActorCritic(nn.Module):
         x = prepare(frames.unsqueeze(1), self.obs_norm)
         return tuple(encoder.frame_features(x) for encoder in self._encoders())
 
-    def from_features(self, features: tuple[torch.Tensor, ...], index: torch.Tensor) -> tuple[torch.Tensor,
-                                                                                              torch.Tensor]:
+    def from_features(self, features: tuple[torch.Tensor, ...], index: torch.Tensor,
+                      teams: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Every encoder's `frame_features` of distinct frames and where each of B observations' frames are in them
         (B, F) -> logits (B, A), values (B,), float32."""
         h = self.features.encode_frames(features[0], index)
         return self._outputs(h, h if self.critic_features is None else
-                             self.critic_features.encode_frames(features[1], index))
+                             self.critic_features.encode_frames(features[1], index), teams)
 
-    def _outputs(self, h: torch.Tensor, critic_h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return self.actor(h).float(), self.critic(critic_h).squeeze(-1).float()
+    def _outputs(self, h: torch.Tensor, critic_h: torch.Tensor,
+                 teams: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.actor(h).float(), self.critic(self._critic_input(critic_h, teams)).squeeze(-1).float()
+
+    def _critic_input(self, h: torch.Tensor, teams: torch.Tensor | None) -> torch.Tensor:
+        """The critic's features (B, D), or with a central critic each observation's beside the mean of its team's
+        (B, 2D): the observations whose `teams` (B,) number is the same (None: each alone)."""
+        if not self.central_critic:
+            return h
+        if teams is None:
+            return torch.cat([h, h], 1)
+        ids, inverse = teams.to(h.device).unique(return_inverse=True)
+        sums = h.new_zeros((len(ids), h.shape[1])).index_add_(0, inverse, h)
+        counts = torch.bincount(inverse, minlength=len(ids)).to(h.dtype)
+        return torch.cat([h, (sums / counts[:, None]).index_select(0, inverse)], 1)
 
     def _encoders(self) -> tuple[VelocityMapEncoder, ...]:
         return (self.features,) if self.critic_features is None else (self.features, self.critic_features)
@@ -293,11 +316,12 @@ class ActorCritic(nn.Module):
     def shared_encoder(self) -> bool:
         return self.critic_features is None
 
-    def value(self, obs: torch.Tensor) -> torch.Tensor:
-        """(B, F, C, H, W) -> (B,), float32: the critic's encoder alone."""
+    def value(self, obs: torch.Tensor, teams: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, F, C, H, W) -> (B,), float32: the critic's encoder alone (`teams` as in `forward`)."""
         encoder = self.features if self.critic_features is None else self.critic_features
         with self._precision(obs):
-            return self.critic(encoder.encode(prepare(obs, self.obs_norm))).squeeze(-1).float()
+            h = encoder.encode(prepare(obs, self.obs_norm))
+            return self.critic(self._critic_input(h, teams)).squeeze(-1).float()
 
     @torch.no_grad()
     def act(self, obs: np.ndarray | torch.Tensor, greedy: bool = False,
@@ -326,10 +350,10 @@ class FrameMemory:
         self.rings: tuple[torch.Tensor, ...] = ()  # per encoder (slots * F, kd, h2, w2, c2): slot s's at s * F ...
         self.newest = torch.zeros(0, dtype=torch.long)  # (slots,) where in its ring each slot's newest frame is
 
-    def __call__(self, obs: torch.Tensor, slots: torch.Tensor, continues: torch.Tensor) -> tuple[torch.Tensor,
-                                                                                                   torch.Tensor]:
-        """`net(obs)` for observations (B, F, C, H, W) of distinct slots (B,), of which those `continues` (B,) flags
-        continue the slot's last one; every slot's ring then holds these observations' frames."""
+    def __call__(self, obs: torch.Tensor, slots: torch.Tensor, continues: torch.Tensor,
+                 teams: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """`net(obs, teams=teams)` for observations (B, F, C, H, W) of distinct slots (B,), of which those `continues`
+        (B,) flags continue the slot's last one; every slot's ring then holds these observations' frames."""
         f = obs.shape[1]
         on, anew = continues.nonzero().squeeze(1), (~continues).nonzero().squeeze(1)
         ids = torch.cat([on * f + f - 1, (anew[:, None] * f + torch.arange(f, device=obs.device)).flatten()])
@@ -352,7 +376,7 @@ class FrameMemory:
                 ring.index_copy_(0, at, x)
             # Oldest to newest: the ring from the place after the newest frame on.
             index = slots[:, None] * f + (newest[:, None] + 1 + torch.arange(f, device=obs.device)) % f
-            return self.net.from_features(self.rings, index)
+            return self.net.from_features(self.rings, index, teams)
 
     def _grow(self, slots: int, device: torch.device) -> None:
         """Room for `slots` slots (one acted on for the first time has no frames to reuse)."""

@@ -24,6 +24,9 @@ Contract (N AVs):
   `ppo_minibatches` minibatches, clipped) for each network that trains this update, with advantages from
   GAE over the batch, advantage normalisation and value normalisation as configured, the learning rate
   and entropy weight of the schedules at `progress` in [0, 1]; returns loss statistics.
+- With `train.central_critic` the critic pools the features of each sample's team, the AVs of its worker at its
+  decision (`teams` in `act` and `value`, the collector's; `ActorCritic.forward`): the update draws its minibatches team
+  by team and cuts them into chunks that hold whole teams (`_chunks`).
 - A frame goes through the network's first two layers once where samples share it (the first's depth kernel is 1,
   the second's depth stride 1, and an agent's stack shifts by one frame per decision: `ActorCritic.frame_features`):
   the update reads each minibatch's distinct frames (`Batch.frame_sources`), and acting in a collecting region keeps
@@ -161,6 +164,18 @@ def _bf16_sound(obs_shape: tuple[int, ...], n_actions: int, tc: TrainConfig, dev
     return False
 
 
+def _chunks(n: int, teams: torch.Tensor | None = None) -> list[slice]:
+    """A minibatch of n samples cut into equal chunks of at most `UPDATE_CHUNK`; given each sample's team (n,), in
+    an order that keeps teams together, each cut moved on to the next team's start (a chunk holds whole teams)."""
+    size = -(-n // -(-n // UPDATE_CHUNK))
+    cuts = list(range(size, n, size))
+    if teams is not None and cuts:
+        starts = torch.cat([torch.tensor([0]), (teams[1:] != teams[:-1]).nonzero().squeeze(1) + 1, torch.tensor([n])])
+        cuts = sorted({int(starts[torch.searchsorted(starts, cut)]) for cut in cuts} - {n})
+    bounds = [0, *cuts, n]
+    return [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+
+
 class MultiAgentPolicy:
     """Networks, acting copies, optimizers and value normalisers of N AVs (see the module doc)."""
 
@@ -175,7 +190,8 @@ class MultiAgentPolicy:
         self.bf16 = use_bf16(tc.precision, tc.device) and _bf16_sound(obs_shape, n_actions, tc, self.device)
         self.nets = [ActorCritic(obs_shape, n_actions, feature_dim=tc.feature_dim, head_hidden=tc.head_hidden,
                                  bf16=self.bf16, shared_encoder=tc.shared_encoder,
-                                 obs_norm=tc.obs_norm, feature_norm=tc.feature_norm).to(self.device)
+                                 obs_norm=tc.obs_norm, feature_norm=tc.feature_norm,
+                                 central_critic=tc.central_critic).to(self.device)
                      for _ in range(n_nets)]
         self.acting = [] if self.shared else [copy.deepcopy(net).requires_grad_(False) for net in self.nets]
         self.optimizers: list[torch.optim.Optimizer]
@@ -264,23 +280,25 @@ class MultiAgentPolicy:
 
     @torch.no_grad()
     def act(self, obs: torch.Tensor, agents: torch.Tensor, update: int, masks: torch.Tensor | None = None,
-            greedy: bool = False, slots: torch.Tensor | None = None,
-            continues: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+            greedy: bool = False, slots: torch.Tensor | None = None, continues: torch.Tensor | None = None,
+            teams: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Sampled actions, their log-probabilities and values (M,) for observations (M, F, C, H, W) of the AVs
         `agents` (M,) under their action masks (M, A; None: every action allowed), one forward per network in
         play; `greedy`: the most probable actions of the networks they play (`played_net`) instead, in float32 as
         evaluation plays them (validation). In a collecting region, `slots` (M,) (worker and agent) and `continues`
         (M,) (`Batch.continues`) let a network run its first two layers on the newest frame of an observation that
-        continues its slot's last one only (`FrameMemory`)."""
+        continues its slot's last one only (`FrameMemory`). `teams` (M,): the observations of one env at one decision
+        share a number, for a central critic (`ActorCritic.forward`)."""
         m = len(agents)
         actions, logp, values = torch.zeros(m, dtype=torch.int64), torch.zeros(m), torch.zeros(m)
         for net, rows in self._groups(agents, update, played=greedy):
+            team = None if teams is None else teams[rows].to(self.device)
             if slots is not None and self._memories is not None and not greedy:
                 memory = self._memories.setdefault(id(net), FrameMemory(net))
                 logits, v = memory(obs[rows].to(self.device), slots[rows].to(self.device),
-                                   continues[rows].to(self.device))
+                                   continues[rows].to(self.device), team)
             else:
-                logits, v = net(obs[rows].to(self.device), float32=greedy)
+                logits, v = net(obs[rows].to(self.device), float32=greedy, teams=team)
             # validate_args=False: the checks of its arguments were a tenth of a small batch's acting.
             dist = torch.distributions.Categorical(
                 logits=logits if masks is None else masked_logits(logits, self._mask(masks[rows])), validate_args=False)
@@ -299,11 +317,14 @@ class MultiAgentPolicy:
         return masks if self.action_mask else None
 
     @torch.no_grad()
-    def value(self, obs: torch.Tensor, agents: torch.Tensor, update: int) -> torch.Tensor:
-        """Values (M,) of observations (M, F, C, H, W) of the AVs `agents`, in the critic's scale."""
+    def value(self, obs: torch.Tensor, agents: torch.Tensor, update: int,
+              teams: torch.Tensor | None = None) -> torch.Tensor:
+        """Values (M,) of observations (M, F, C, H, W) of the AVs `agents`, in the critic's scale (`teams` as in
+        `act`)."""
         values = torch.zeros(len(agents))
         for net, rows in self._groups(agents, update):
-            values[rows] = net.value(obs[rows].to(self.device)).cpu()
+            values[rows] = net.value(obs[rows].to(self.device),
+                                     None if teams is None else teams[rows].to(self.device)).cpu()
         return values
 
     # -- learning -----------------------------------------------------------------------------------------
@@ -350,8 +371,16 @@ class MultiAgentPolicy:
         rows = flat.flatten().nonzero().squeeze(1)
         sources = b.frame_sources(rows)  # (m, F)
         # Samples ordered agent by agent, then in time, within a minibatch: a chunk then holds runs of an agent's
-        # consecutive samples, which share all their frames but one.
-        column_first = (rows % flat.shape[1]) * steps + rows // flat.shape[1]
+        # consecutive samples, which share all their frames but one. A central critic needs each sample's team (its
+        # env's AVs at its decision) in its chunk: minibatches are then drawn team by team, and ordered worker by
+        # worker, in time, agent by agent, which keeps teams together and an agent's next sample a team further.
+        n_agents = b.valid.shape[2]
+        team = rows // n_agents  # t * W + w
+        if net.central_critic:
+            order_key = (rows % flat.shape[1] // n_agents * steps + rows // flat.shape[1]) * n_agents + rows % n_agents
+            team_ids, team_of = team.unique(return_inverse=True)
+        else:
+            order_key = (rows % flat.shape[1]) * steps + rows // flat.shape[1]
         actions, old_logp, masks = b.actions[sel], b.logp[sel], b.masks[sel]
         adv, old_logp, actions = adv.to(self.device), old_logp.to(self.device), actions.to(self.device)
         m = len(adv)
@@ -362,24 +391,29 @@ class MultiAgentPolicy:
         totals: dict[str, float] = {}
         n_steps = 0
         for _ in range(epochs):
-            order = torch.randperm(m) if minibatches > 1 else torch.arange(m)
-            for idx in order.chunk(minibatches):
-                idx = idx[column_first[idx].argsort()]
+            if net.central_critic:
+                picks = (torch.randperm(len(team_ids)) if minibatches > 1 else torch.arange(len(team_ids))).chunk(
+                    min(minibatches, len(team_ids)))
+                draws = [torch.isin(team_of, pick).nonzero().squeeze(1) for pick in picks]
+            else:
+                draws = list((torch.randperm(m) if minibatches > 1 else torch.arange(m)).chunk(minibatches))
+            for idx in draws:
+                idx = idx[order_key[idx].argsort()]
                 n = len(idx)
                 dev_idx = idx.to(self.device)
                 a = adv[dev_idx]
                 a = normalize(a) if tc.normalize_advantage else a  # over the minibatch, not the chunk
                 opt.zero_grad(set_to_none=True)
-                chunks = -(-n // UPDATE_CHUNK)
-                size = -(-n // chunks)  # equal chunks, none over UPDATE_CHUNK
-                for start in range(0, n, size):
-                    part, at = idx[start:start + size], slice(start, start + size)
-                    c = len(part)
-                    # Padded with repeats of its own samples to a size `bucket` rounds to (its frames too); only the
-                    # first c outputs reach the loss, so the gradient is the unpadded one.
-                    ids, index = sources[torch.cat([part, part[:bucket(c) - c]])].unique(return_inverse=True)
+                for at in _chunks(n, team[idx] if net.central_critic else None):
+                    part = idx[at]
+                    c, pad = len(part), bucket(len(part)) - len(part)
+                    # Padded with repeats of its own samples to a size `bucket` rounds to (its frames too), each a
+                    # team of its own; only the first c outputs reach the loss, so the gradient is the unpadded one.
+                    ids, index = sources[torch.cat([part, part[:pad]])].unique(return_inverse=True)
                     ids = torch.cat([ids, ids[:bucket(len(ids)) - len(ids)]])
-                    logits, v = net.forward_frames(b.frames(ids).to(self.device), index.to(self.device))
+                    teams = torch.cat([team[part], -1 - torch.arange(pad)]) if net.central_critic else None
+                    logits, v = net.forward_frames(b.frames(ids).to(self.device), index.to(self.device),
+                                                   None if teams is None else teams.to(self.device))
                     terms = actor_critic_loss(logits[:c], v[:c], actions[dev_idx[at]], a[at], target[dev_idx[at]],
                                               ent, tc.value_coef, old_logp[dev_idx[at]], clip,
                                               self._mask(masks[part]))

@@ -6,8 +6,8 @@ process of its own when there are several (libsumo allows one SUMO per process),
 (SuperSuit's `black_death_v3` keeps an AV that has left with zero observations until its episode ends,
 `pettingzoo_env_to_vec_env_v1` makes the AVs sub-envs, so one network serves them all); copy i plays its own
 episode seeds, below the evaluation seeds. `ppo_kwargs(train_config)` sets SB3's PPO as `cosim train` is set
-(`sb3_train_config` first leaves out `train.obs_norm` and `train.egoistic_episodes`, which SB3's PPO here has no
-counterpart of), with
+(`sb3_train_config` first leaves out `train.obs_norm`, `train.egoistic_episodes` and `train.central_critic`, which
+SB3's PPO here has no counterpart of), with
 `VelocityMapExtractor` (the paper's Conv3D stack) under its policy; a saved model loads by `load_actor(path)`
 as an actor with `ActorCritic.act`'s signature, and a file that is no SB3 model (cosim's own policy.pt, say) is a
 `ConfigError` naming it and what `--policy sb3` takes.
@@ -64,14 +64,18 @@ def sb3_train_config(tc: TrainConfig) -> TrainConfig:
     """The train section as SB3's PPO here takes it: without `train.obs_norm`, cosim's own input standardisation
     (SB3's `VecNormalize` standardises without `agents.model.ObsNorm`'s floor on the std, and its statistics would
     not travel with the model to `cosim evaluate --policy sb3`), and without `train.egoistic_episodes` (SB3's PPO
-    trains on the env's reward), with a warning for each the config had on."""
+    trains on the env's reward), and without `train.central_critic` (every AV is a sub-env of its own there), with a
+    warning for each the config had on."""
     if tc.obs_norm:
         log.warning("train.obs_norm: cosim train's input standardisation has no counterpart in SB3's PPO here; it "
                     "trains on the input scaled to [0, 1], as the paper's network does")
     if tc.egoistic_episodes:
         log.warning("train.egoistic_episodes: cosim train's egoistic warm-up has no counterpart in SB3's PPO here; "
                     "it trains on reward.phi's reward from the first episode")
-    return tc.model_copy(update={"obs_norm": False, "egoistic_episodes": 0})
+    if tc.central_critic:
+        log.warning("train.central_critic: SB3's PPO here sees each AV as an env of its own; its critic reads the AV's "
+                    "own map only")
+    return tc.model_copy(update={"obs_norm": False, "egoistic_episodes": 0, "central_critic": False})
 
 
 def ppo_kwargs(tc: TrainConfig, n_steps: int, batch: int) -> dict[str, Any]:

@@ -450,7 +450,7 @@ class _Run:
                          "n_actions": spec.n_actions, "shared_policy": tc.shared_policy,
                          "feature_dim": tc.feature_dim, "head_hidden": tc.head_hidden,
                          "shared_encoder": tc.shared_encoder, "obs_norm": tc.obs_norm,
-                         "feature_norm": tc.feature_norm}
+                         "feature_norm": tc.feature_norm, "central_critic": tc.central_critic}
             self.policy = MultiAgentPolicy(len(spec.agents), spec.obs_shape, spec.n_actions, tc, tc.device)
             # Which one `auto` chose decides whether the run is reproducible bit for bit (README).
             log.info("forward passes in %s (train.precision: %s)",
@@ -517,7 +517,8 @@ class _Run:
         try:
             check_spec({"spec": meta["spec"]}, {k: self.spec[k] for k in ("obs_shape", "n_actions", "feature_dim",
                                                                           "head_hidden", "shared_encoder",
-                                                                          "obs_norm", "feature_norm")},
+                                                                          "obs_norm", "feature_norm",
+                                                                          "central_critic")},
                        Path(path))
         except CheckpointError as exc:
             raise _from_config(exc) if meta.get("configured") else exc from None

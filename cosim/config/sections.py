@@ -613,6 +613,11 @@ class TrainConfig(_Section):
         True, description="one Conv3D encoder under the actor's and the critic's heads (the paper's network); false: "
         "each its own (MAPPO's default), twice the encoder's work per sample; on the default scenario it reached no "
         "safe policy sooner (docs/results.md)")
+    central_critic: StrictBool = Field(
+        False, description="the critic reads, beside an AV's own features, the mean of the features of every AV of "
+        "its env at that decision (MAPPO's centralised value function); the actor still acts on its own map alone, "
+        "so a trained policy plays as any other; needs shared_policy; false: each AV's critic on its own map, as in "
+        "the paper")
     obs_norm: StrictBool = Field(
         False, description="standardise the network's input pixel by pixel by running statistics the learner keeps "
         "(as SB3's VecNormalize does for vector observations), saved with the weights; false: scaled to [0, 1] only, "
@@ -652,6 +657,13 @@ class TrainConfig(_Section):
         if problem:
             raise _problem(problem)
         return device
+
+    @model_validator(mode="after")
+    def _central_critic_shared(self) -> Self:
+        if self.central_critic and not self.shared_policy:
+            raise _problem("a central critic pools the AVs' features of one network: it needs shared_policy: true "
+                           "(or central_critic: false with one network per AV)", "central_critic")
+        return self
 
 
 class EvaluateConfig(_Section):

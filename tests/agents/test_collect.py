@@ -50,12 +50,15 @@ def test_the_egoistic_training_reward_is_each_avs_own_utility_on_the_real_env() 
     assert social > 0  # the env's reward had a part for the others, which the egoistic one leaves out
 
 
+@pytest.mark.parametrize("central_critic", [False, True])
 def test_acting_on_the_real_env_runs_the_first_layers_on_new_frames_only_and_values_as_a_whole_forward(
-        monkeypatch) -> None:
+        monkeypatch, central_critic: bool) -> None:
     # The env's stacks shift by one frame per decision, so after an agent's first decision only its newest frame
-    # goes through the first two layers; what the learner recorded is what the network gives the whole observations.
+    # goes through the first two layers; what the learner recorded is what the network gives the whole observations,
+    # a central critic's values those of each worker's AVs at each decision together.
     cfg = load_config("configs/smoke.yaml", {"train.feature_dim": 16, "train.head_hidden": 16,
-                                             "train.precision": "float32", "train.obs_norm": True})
+                                             "train.precision": "float32", "train.obs_norm": True,
+                                             "train.central_critic": central_critic})
     pool = WorkerPool(functools.partial(parallel_env, cfg.to_dict()), 2, 0, 60.0)
     try:
         spec = pool.spec
@@ -79,5 +82,7 @@ def test_acting_on_the_real_env_runs_the_first_layers_on_new_frames_only_and_val
     assert sum(seen) == len(rows) + (f - 1) * int((~continuing).sum())  # truncated agents' finals go whole
     t_, w_, i_ = batch.valid.nonzero(as_tuple=True)
     with torch.no_grad():
-        _, values = policy.nets[0](batch.observations(rows))
+        _, values = policy.nets[0](batch.observations(rows), teams=t_ * 2 + w_)
+        if central_critic:  # not each AV alone
+            assert (policy.nets[0](batch.observations(rows))[1] - values).abs().max() > 1e-4
     torch.testing.assert_close(batch.values[t_, w_, i_], values, atol=1e-5, rtol=1e-5)

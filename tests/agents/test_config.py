@@ -34,6 +34,8 @@ def test_values_from_the_config_file_section() -> None:
         ({"device": "tpu"}, "train.device: expected cpu, cuda or cuda:N, got 'tpu'"),
         ({"entropy_coef": -0.1}, "train.entropy_coef: must be >= 0, got -0.1"),
         ({"lr_final": -1}, "train.lr_final: must be >= 0, got -1"),
+        ({"central_critic": True, "shared_policy": False},
+         "train.central_critic: a central critic pools the AVs' features of one network: it needs shared_policy: true"),
     ],
 )
 def test_bad_keys_and_values_name_the_key(train: dict, message: str) -> None:

@@ -130,6 +130,27 @@ def test_the_critics_loss_shapes_the_actors_features_only_through_a_shared_encod
         torch.testing.assert_close(net.value(torch.ones(2, 2, 4, 8, 16)), net(torch.ones(2, 2, 4, 8, 16))[1])
 
 
+def test_a_central_critic_values_an_av_by_its_map_and_its_teams_while_the_actor_reads_its_own_alone() -> None:
+    torch.manual_seed(0)
+    net = ActorCritic((2, 4, 8, 16), feature_dim=32, head_hidden=16, central_critic=True)
+    obs, teams = torch.rand(5, 2, 4, 8, 16), torch.tensor([7, 7, 3, 3, 3])
+    with torch.no_grad():
+        logits, values = net(obs, teams=teams)
+        other = obs.clone()
+        other[1] = torch.rand(2, 4, 8, 16)  # the scene of sample 0's teammate changes
+        logits2, values2 = net(other, teams=teams)
+        assert (values2[:2] - values[:2]).abs().min() > 1e-4
+        torch.testing.assert_close(values2[2:], values[2:])  # another team's
+        torch.testing.assert_close(logits2[[0, 2, 3, 4]], logits[[0, 2, 3, 4]])  # an actor reads its own map alone
+        torch.testing.assert_close(net.value(obs, teams), values)
+        alone, together = net(obs)[1], net(obs, teams=torch.zeros(5, dtype=torch.long))[1]
+        torch.testing.assert_close(alone, net(obs, teams=torch.arange(5))[1])  # no teams: each AV alone
+        assert (alone - together).abs().max() > 1e-4
+        # The update's path, through each observation's frames, pools the same way.
+        frames, index = obs.flatten(0, 1), torch.arange(10).view(5, 2)
+        torch.testing.assert_close(net.forward_frames(frames, index, teams)[1], values, atol=1e-5, rtol=1e-5)
+
+
 def test_obs_norm_keeps_each_pixels_running_mean_and_variance_over_batches() -> None:
     # Chan's merge of two batches equals the statistics of both at once, per channel and pixel; uint8 as [0, 1].
     net = ActorCritic((2, 3, 8, 16), feature_dim=32, head_hidden=16, obs_norm=True)

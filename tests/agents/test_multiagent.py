@@ -11,7 +11,7 @@ import torch
 from agents.checkpoint import played_nets
 from agents.config import TrainConfig
 from agents.model import BF16_GRADIENT_TOL, VelocityMapEncoder, bf16_gradient_error
-from agents.multiagent import Batch, MultiAgentPolicy, bucket
+from agents.multiagent import Batch, MultiAgentPolicy, _chunks, bucket
 from cosim.errors import ConfigError
 
 OBS = (2, 4, 8, 16)
@@ -374,6 +374,32 @@ def test_a_minibatch_split_into_chunks_makes_the_update_and_statistics_of_one_pa
         assert chunked_stats[k] == pytest.approx(v, rel=1e-5, abs=1e-6), k
 
 
+@pytest.mark.parametrize("algo", ["a2c", "ppo"])
+def test_a_central_critics_update_in_chunks_and_padded_is_its_update_in_one_pass(algo: str, monkeypatch) -> None:
+    # The critic pools the features of each sample's team (its worker's AVs at its step): a chunk that cut a team,
+    # or a padding row that joined one, would change the values and so the update (by 7% of a parameter here).
+    tc = small_tc(algo=algo, ppo_minibatches=2, ppo_epochs=2, central_critic=True)
+    b = random_batch(T=20)  # 40 teams of 3 (one of 2 from step 5 on): equal chunks of at most 20 would cut teams,
+    b.valid[5:, 1, 2] = False  # and whole ones of 21 are padded to 22
+    monkeypatch.setattr("agents.multiagent.UPDATE_CHUNK", 20)
+    chunked_stats, chunked = trained(tc, copy_batch(b))
+    monkeypatch.setattr("agents.multiagent.UPDATE_CHUNK", 1000)
+    monkeypatch.setattr("agents.multiagent.bucket", lambda n: n)
+    whole_stats, whole = trained(tc, copy_batch(b))
+    for k, v in whole[0].items():
+        torch.testing.assert_close(chunked[0][k], v, rtol=1e-5, atol=1e-5)
+    for k, v in whole_stats.items():
+        assert chunked_stats[k] == pytest.approx(v, rel=1e-4, abs=1e-6), k
+
+
+def test_chunks_of_a_minibatch_are_equal_or_hold_whole_teams(monkeypatch) -> None:
+    monkeypatch.setattr("agents.multiagent.UPDATE_CHUNK", 5)
+    teams = torch.tensor([0, 0, 0, 1, 1, 2, 2, 2, 2, 3, 4, 4])
+    assert [(s.start, s.stop) for s in _chunks(12)] == [(0, 4), (4, 8), (8, 12)]
+    assert [(s.start, s.stop) for s in _chunks(12, teams)] == [(0, 5), (5, 9), (9, 12)]
+    assert _chunks(3, torch.zeros(3)) == [slice(0, 3)]
+
+
 def stacked_batch(T: int = 6, W: int = 2, N: int = 3, obs: tuple[int, ...] = (3, 4, 8, 16)) -> Batch:
     """A batch whose agents' stacks shift by one frame per step, as the env's do: agent (w, i)'s observation at t
     is frames t .. t + F - 1 of its own sequence; agent (1, 2) starts anew at step 3 (a reset: older frames zero)
@@ -432,8 +458,9 @@ def test_frames_shared_by_samples_go_through_the_first_two_layers_once_without_a
         assert shared_stats[k] == pytest.approx(v, rel=1e-4, abs=1e-6), k
 
 
-def test_acting_with_the_frame_memory_is_acting_without_it() -> None:
-    tc = small_tc(shared_policy=False, obs_norm=True)
+@pytest.mark.parametrize("networks", [{"shared_policy": False}, {"central_critic": True}])
+def test_acting_with_the_frame_memory_is_acting_without_it(networks: dict) -> None:
+    tc = small_tc(obs_norm=True, **networks)
     torch.manual_seed(0)
     policy = MultiAgentPolicy(3, (3, 4, 8, 16), 5, tc)
     policy.update(stacked_batch(), tc, update=0, progress=0.0)  # input statistics taken in
@@ -447,9 +474,9 @@ def test_acting_with_the_frame_memory_is_acting_without_it() -> None:
             flat = (t * W + w_) * N + i_
             obs = b.observations(flat)
             torch.manual_seed(t)
-            got = policy.act(obs, i_, update=1, slots=w_ * N + i_, continues=b.continues(flat))
+            got = policy.act(obs, i_, update=1, slots=w_ * N + i_, continues=b.continues(flat), teams=w_)
             torch.manual_seed(t)
-            expected = policy.act(obs, i_, update=1)
+            expected = policy.act(obs, i_, update=1, teams=w_)
             assert torch.equal(got[0], expected[0])
             for a, e in zip(got[1:], expected[1:], strict=True):
                 torch.testing.assert_close(a, e, atol=1e-6, rtol=1e-5)

@@ -93,7 +93,9 @@ def test_cosims_own_input_standardisation_is_left_out_of_sb3_by_name_not_silentl
     assert "train.egoistic_episodes: cosim train's egoistic warm-up has no counterpart in SB3's PPO" in caplog.text
     caplog.clear()
     sb3_train_config(train_config(load_config(None)))
-    assert "obs_norm" not in caplog.text and "egoistic" not in caplog.text
+    assert "obs_norm" not in caplog.text and "egoistic" not in caplog.text and "central" not in caplog.text
+    assert not sb3_train_config(train_config({"central_critic": True})).central_critic
+    assert "train.central_critic: SB3's PPO here sees each AV as an env of its own" in caplog.text
 
 
 @pytest.mark.parametrize("feature_norm", [False, True])

@@ -383,6 +383,20 @@ def test_separate_encoders_train_save_and_load_and_a_shared_policy_cannot_start_
     check_spec({"spec": {"feature_dim": 32}}, {"feature_dim": 32, "shared_encoder": True}, tmp_path / "old.pt")
 
 
+def test_a_central_critic_trains_saves_and_loads_and_a_run_without_one_cannot_start_from_it(tmp_path: Path) -> None:
+    from agents.checkpoint import export_policy
+
+    first = train(cfg_with(central_critic=True), tmp_path / "central", workers=2, episodes=4,
+                  env_factory=make_fake_env(n_agents=2), progress=False)
+    export_policy(first.checkpoint, tmp_path / "central.pt")
+    policies, meta = load_policy(tmp_path / "central.pt")
+    assert meta["spec"]["central_critic"] is True and policies["av_0"].central_critic
+    assert policies["av_0"].act(torch.zeros((1, *policies["av_0"].obs_shape))).shape == (1,)
+    with pytest.raises(CheckpointError, match="incompatible central_critic: checkpoint has True, this run needs False"):
+        train(cfg_with(), tmp_path / "second", workers=1, episodes=1, progress=False,
+              env_factory=make_fake_env(n_agents=2), init_from=tmp_path / "central.pt")
+
+
 def test_obs_norm_learns_the_inputs_statistics_keeps_them_exact_in_float16_files_and_must_match(tmp_path: Path) -> None:
     from agents.checkpoint import check_spec, export_policy
 
